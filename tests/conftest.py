@@ -1,0 +1,30 @@
+"""Shared fixtures: tasks, their real environments and planning models are costly to build, so build them once."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
+
+@pytest.fixture(scope="session")
+def task_bundle():
+    """task name -> (task, env, planning model), built on first use."""
+    from workers.tasks import make_task
+
+    cache = {}
+
+    def get(name: str):
+        if name not in cache:
+            task = make_task(name)
+            env = task.make_env()
+            env.reset(seed=0)
+            cache[name] = (task, env, task.build_planning_model(env))
+        return cache[name]
+
+    yield get
+    for _, env, _ in cache.values():
+        env.close()

@@ -1,0 +1,121 @@
+"""Batched evaluation of action sequences in native MuJoCo code.
+
+All trajectories of a batch are simulated by ``mujoco.rollout`` in C++ threads;
+Python touches the batch once per call (open-loop tasks) or once per
+environment step (tasks whose controls depend on the simulated state), never
+once per trajectory. Rewards are vectorised numpy over the whole batch.
+"""
+
+from __future__ import annotations
+
+import os
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from workers.tasks.base import GroundTruthTask, RolloutBatch, SimState
+
+
+def default_threads() -> int:
+    """Threads for rollouts: the CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class BatchEvaluator:
+    """Simulates batches of action sequences from a captured state of a task.
+
+    Args:
+        task: the task whose planning model, controls and rewards are used.
+        model: the task's planning model (:meth:`GroundTruthTask.build_planning_model`).
+        threads: C++ threads for the rollouts; 0 runs on the calling thread.
+    """
+
+    def __init__(self, task: GroundTruthTask, model: mujoco.MjModel, threads: int | None = None):
+        self.task = task
+        self.model = model
+        self.threads = default_threads() if threads is None else int(threads)
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0, got {threads}")
+        self._datas = [mujoco.MjData(model) for _ in range(max(1, self.threads))]
+        self._pool = mj_rollout.Rollout(nthread=self.threads)
+        self._control_spec = task.control_spec(model)
+        self.simulated_steps = 0
+        """Environment steps simulated so far (trajectories x horizon), for throughput figures."""
+
+    def close(self) -> None:
+        """Stop the rollout threads."""
+        self._pool.close()
+
+    def __enter__(self) -> BatchEvaluator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _run(self, initial: np.ndarray, control: np.ndarray, nstep: int, warmstart: np.ndarray | None):
+        return self._pool.rollout(
+            self.model,
+            self._datas,
+            initial_state=initial,
+            control=control,
+            control_spec=self._control_spec,
+            nstep=nstep,
+            initial_warmstart=warmstart,
+        )
+
+    def simulate(self, state: SimState, actions: np.ndarray, keep_substeps: bool = False) -> RolloutBatch:
+        """Simulate N action sequences (N, h, d) in [-1, 1] from ``state``."""
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.ndim != 3:
+            raise ValueError(f"actions must be (N, horizon, action_dim), got shape {actions.shape}")
+        self.task.load_into(self.model, state)
+        n, horizon, _ = actions.shape
+        skip = self.task.frame_skip
+        warmstart = state.warmstart[None]
+        before_last = None
+        if not self.task.feedback_control:
+            control = np.repeat(self.task.controls(self.model, state, actions), skip, axis=1)
+            substeps, sensors = self._run(state.physics[None], control, horizon * skip, warmstart)
+            states = substeps[:, skip - 1 :: skip]
+            frames = sensors[:, skip - 1 :: skip]
+            if keep_substeps:
+                before_last = self._before_last(state, substeps, skip)
+        else:
+            physics = np.repeat(state.physics[None], n, axis=0)
+            current_frames = np.repeat(state.frames[None], n, axis=0)
+            states = np.empty((n, horizon, physics.shape[1]))
+            frames = np.empty((n, horizon, current_frames.shape[1]))
+            if keep_substeps:
+                before_last = np.empty_like(states)
+            for t in range(horizon):
+                control = self.task.feedback_controls(self.model, state, actions[:, t], physics, current_frames)
+                # The solver warm start is only known for the captured state; later
+                # steps start cold (differences at the solver's tolerance).
+                substeps, sensors = self._run(physics, control[:, None, :], skip, warmstart if t == 0 else None)
+                physics, current_frames = substeps[:, -1], sensors[:, -1]
+                states[:, t], frames[:, t] = physics, current_frames
+                if keep_substeps:
+                    before_last[:, t] = substeps[:, -2] if skip > 1 else (state.physics if t == 0 else states[:, t - 1])
+        self.simulated_steps += n * horizon
+        return RolloutBatch(state.physics, states, frames, actions, state.goal, before_last)
+
+    @staticmethod
+    def _before_last(state: SimState, substeps: np.ndarray, skip: int) -> np.ndarray:
+        if skip > 1:
+            return substeps[:, skip - 2 :: skip]
+        start = np.broadcast_to(state.physics, substeps[:, :1].shape)
+        return np.concatenate([start, substeps[:, :-1]], axis=1)
+
+    def costs(self, state: SimState, actions: np.ndarray) -> np.ndarray:
+        """(N,) planning cost of each sequence: the task's per-step costs summed over the horizon."""
+        batch = self.simulate(state, actions)
+        return self.task.costs(self.model, batch).sum(axis=1)
+
+    def rewards(self, state: SimState, actions: np.ndarray) -> np.ndarray:
+        """(N, h) per-step rewards, equal to those of the real environment."""
+        batch = self.simulate(state, actions, keep_substeps=self.task.needs_substeps)
+        return self.task.rewards(self.model, batch)

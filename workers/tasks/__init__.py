@@ -1,0 +1,48 @@
+"""Ground-truth MuJoCo tasks of the thesis (chapter 3), by registry name."""
+
+from __future__ import annotations
+
+import difflib
+
+from workers.tasks.adroit import Door, DoorSparse, Relocate
+from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome
+from workers.tasks.fetch import FetchPickPlaceSparse
+from workers.tasks.locomotion import HalfCheetahRunning, HumanoidStandup
+from workers.tasks.point_reach import PointReach
+
+TASKS: dict[str, type[GroundTruthTask]] = {
+    task.name: task
+    for task in (HalfCheetahRunning, HumanoidStandup, FetchPickPlaceSparse, Door, DoorSparse, Relocate, PointReach)
+}
+
+
+class UnknownTaskError(ValueError):
+    """A task name that is not in the registry."""
+
+
+def unknown_task_message(name: str) -> str:
+    """'unknown task ...' with a did-you-mean hint and the list of tasks."""
+    close = difflib.get_close_matches(name, TASKS, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"unknown task {name!r}{hint}; known tasks: {', '.join(TASKS)}"
+
+
+def make_task(name: str) -> GroundTruthTask:
+    """The task registered under ``name``."""
+    try:
+        return TASKS[name]()
+    except KeyError:
+        raise UnknownTaskError(unknown_task_message(name)) from None
+
+
+__all__ = [
+    "TASKS",
+    "Frame",
+    "GroundTruthTask",
+    "RolloutBatch",
+    "SimState",
+    "StepOutcome",
+    "UnknownTaskError",
+    "make_task",
+    "unknown_task_message",
+]

@@ -1,0 +1,157 @@
+"""Adroit (DAPG) hand tasks of chapter 3: Door, Door sparse and Relocate.
+
+The rewards are DAPG's (Rajeswaran et al. 2018), as the thesis uses them.
+gymnasium-robotics 1.4.2's AdroitHand*-v1 environments add the palm distance
+term with the wrong sign (+0.1 ||palm - target||), so the environment's own
+reward is not used: every step's reward is computed from the real
+environment's simulator data with DAPG's definition (:meth:`step_env`), and the
+vectorised batch reward computes the same from sensor readings.
+
+Success is DAPG's: the goal condition holds on more than 25 steps of the
+episode.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome
+
+SUCCESS_MIN_STEPS = 25
+"""DAPG's success: goal achieved on more than this many steps of an episode."""
+
+
+class _AdroitTask(GroundTruthTask):
+    frame_skip = 5
+    episode_length = 200
+    has_success = True
+
+    def controls(self, model: mujoco.MjModel, state: SimState, actions: np.ndarray) -> np.ndarray:
+        # The environment centres and scales normalised actions onto the ctrl ranges.
+        act_mean = np.mean(model.actuator_ctrlrange, axis=1)
+        act_rng = 0.5 * (model.actuator_ctrlrange[:, 1] - model.actuator_ctrlrange[:, 0])
+        ctrl = act_mean + np.clip(actions, -1.0, 1.0) * act_rng
+        return self._with_mocap(state, ctrl)
+
+    def episode_success(self, goal_achieved: list[bool]) -> bool | None:
+        return int(np.sum(goal_achieved)) > SUCCESS_MIN_STEPS
+
+    def _env_quantities(self, env) -> dict[str, np.ndarray]:
+        """The quantities the reward reads, taken from the real environment's data."""
+        raw = env.unwrapped
+        frames = self.read_frames(raw.model, raw.data)
+        return self._quantities(raw.model, frames, raw.data.qpos, raw.data.qvel)
+
+    def _batch_quantities(self, model: mujoco.MjModel, batch: RolloutBatch) -> dict[str, np.ndarray]:
+        return self._quantities(model, batch.frames, self.qpos(model, batch.states), self.qvel(model, batch.states))
+
+    def _quantities(self, model, frames, qpos, qvel) -> dict[str, np.ndarray]:
+        raise NotImplementedError
+
+    def _reward(self, q: dict[str, np.ndarray]) -> np.ndarray:
+        raise NotImplementedError
+
+    def _achieved(self, q: dict[str, np.ndarray]) -> np.ndarray:
+        raise NotImplementedError
+
+    def rewards(self, model, batch):
+        return self._reward(self._batch_quantities(model, batch))
+
+    def goal_achieved(self, model, batch):
+        return self._achieved(self._batch_quantities(model, batch))
+
+    def step_env(self, env, action):
+        observation, *_ = env.step(self.env_action(action))
+        q = self._env_quantities(env)
+        return StepOutcome(float(self._reward(q)), bool(self._achieved(q)), observation)
+
+
+class Door(_AdroitTask):
+    """Door (DAPG): press the handle to release the latch, then pull the door open.
+
+    r = -0.1 ||palm - handle|| - 0.1 (hinge - 1.57)^2 - 1e-5 ||qvel||^2
+        + 2 [hinge > 0.2] + 8 [hinge > 1.0] + 10 [hinge > 1.35];
+    the goal holds while hinge >= 1.35.
+    """
+
+    name = "door"
+    env_id = "AdroitHandDoor-v1"
+    colored_noise_beta = 2.5
+    frames = (Frame("pos", "site", "S_handle"), Frame("pos", "site", "S_grasp"))
+    per_episode_model_fields = ("body_pos",)  # reset moves the door frame
+    description = "Adroit hand opens a door, DAPG dense reward (200 steps)"
+
+    use_palm_term = True
+    """Whether the reward includes -0.1 ||palm - handle|| (False: Door sparse)."""
+
+    def _quantities(self, model, frames, qpos, qvel):
+        hinge = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "door_hinge")
+        return {
+            "handle": frames[..., self.frame_slice("S_handle")],
+            "palm": frames[..., self.frame_slice("S_grasp")],
+            "hinge": qpos[..., model.jnt_qposadr[hinge]],
+            "qvel": qvel,
+        }
+
+    def _reward(self, q):
+        hinge = q["hinge"]
+        reward = -0.1 * (hinge - 1.57) * (hinge - 1.57) - 1e-5 * np.sum(q["qvel"] ** 2, axis=-1)
+        if self.use_palm_term:
+            reward = reward - 0.1 * np.linalg.norm(q["palm"] - q["handle"], axis=-1)
+        reward = reward + 2.0 * (hinge > 0.2) + 8.0 * (hinge > 1.0) + 10.0 * (hinge > 1.35)
+        return reward
+
+    def _achieved(self, q):
+        return q["hinge"] >= 1.35
+
+
+class DoorSparse(Door):
+    """Door (sparse reward): Door without the palm-to-handle term.
+
+    Nothing rewards reaching the handle, so the reward only changes once the
+    door moves (section 3.3.1). Not gymnasium-robotics' binary Sparse variant.
+    """
+
+    name = "door_sparse"
+    use_palm_term = False
+    description = "Adroit door without the palm-to-handle term (200 steps)"
+
+
+class Relocate(_AdroitTask):
+    """Relocate (DAPG): pick up the ball and move it to the target.
+
+    r = -0.1 ||palm - ball|| + [ball_z > 0.04] (1 - 0.5 ||palm - target|| - 0.5 ||ball - target||)
+        + 10 [||ball - target|| < 0.1] + 20 [||ball - target|| < 0.05];
+    the goal holds while ||ball - target|| < 0.1.
+    """
+
+    name = "relocate"
+    env_id = "AdroitHandRelocate-v1"
+    colored_noise_beta = 3.5
+    frames = (
+        Frame("pos", "xbody", "Object"),
+        Frame("pos", "site", "S_grasp"),
+        Frame("pos", "site", "target"),
+    )
+    per_episode_model_fields = ("body_pos", "site_pos")  # reset moves the ball and the target
+    description = "Adroit hand moves a ball to a target, DAPG reward (200 steps)"
+
+    def _quantities(self, model, frames, qpos, qvel):
+        return {
+            "ball": frames[..., self.frame_slice("Object")],
+            "palm": frames[..., self.frame_slice("S_grasp")],
+            "target": frames[..., self.frame_slice("target")],
+        }
+
+    def _reward(self, q):
+        ball, palm, target = q["ball"], q["palm"], q["target"]
+        ball_to_target = np.linalg.norm(ball - target, axis=-1)
+        lifted = ball[..., 2] > 0.04
+        reward = -0.1 * np.linalg.norm(palm - ball, axis=-1)
+        reward = reward + lifted * (1.0 - 0.5 * np.linalg.norm(palm - target, axis=-1) - 0.5 * ball_to_target)
+        reward = reward + 10.0 * (ball_to_target < 0.1) + 20.0 * (ball_to_target < 0.05)
+        return reward
+
+    def _achieved(self, q):
+        return np.linalg.norm(q["ball"] - q["target"], axis=-1) < 0.1
