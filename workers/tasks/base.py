@@ -21,6 +21,8 @@ parameters that resets randomise (Adroit), and the goal (Fetch).
 
 from __future__ import annotations
 
+import contextlib
+import io
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal, NamedTuple
@@ -101,6 +103,18 @@ class StepOutcome(NamedTuple):
     """The environment's observation after the step."""
 
 
+def register_robotics_envs() -> None:
+    """Register gymnasium-robotics' environment ids.
+
+    Importing gymnasium_robotics 1.4.2 prints a notice that its Adroit *reward
+    functions* changed in 1.2.1; the Adroit tasks compute DAPG's rewards
+    themselves (see workers/tasks/adroit.py), so the notice is not shown.
+    """
+    with contextlib.redirect_stderr(io.StringIO()):
+        import gymnasium_robotics
+    gym.register_envs(gymnasium_robotics)
+
+
 def copy_model_parameters(dst: mujoco.MjModel, src: mujoco.MjModel) -> None:
     """Copy every numeric model array that both models share, except sensors.
 
@@ -148,9 +162,7 @@ class GroundTruthTask(ABC):
     # ----------------------------------------------------------------- envs
     def make_env(self) -> gym.Env:
         """The real environment, with the task's episode length as time limit."""
-        import gymnasium_robotics  # noqa: F401  (registers the robotics ids)
-
-        gym.register_envs(gymnasium_robotics)
+        register_robotics_envs()
         return gym.make(self.env_id, max_episode_steps=self.episode_length, **self.env_kwargs)
 
     def build_planning_model(self, env: gym.Env) -> mujoco.MjModel:

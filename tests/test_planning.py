@@ -1,0 +1,232 @@
+"""The CEM family against its definitions (thesis section 3.1-3.2, appendix B)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from workers.planning import CEM_BUDGETS, ICEM_BUDGETS, CEMPlanner, PlannerConfig, colored_noise, truncated_normal
+
+
+# ------------------------------------------------------------------ noise
+@pytest.mark.parametrize("beta", [0.0, 0.5, 1.0, 2.0, 3.0])
+def test_colored_noise_has_power_law_spectrum(beta):
+    """PSD ~ 1/f^beta (eq. 10): the fitted log-log slope of the periodogram is -beta."""
+    noise = colored_noise(beta, (4000, 256), np.random.default_rng(0))
+    psd = np.mean(np.abs(np.fft.rfft(noise, axis=-1)) ** 2, axis=0)
+    frequencies = np.fft.rfftfreq(256)
+    slope = np.polyfit(np.log(frequencies[1:-1]), np.log(psd[1:-1]), 1)[0]
+    assert slope == pytest.approx(-beta, abs=0.1)
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.5, 4.0])
+@pytest.mark.parametrize("length", [30, 31])
+def test_colored_noise_is_standardised(beta, length):
+    """C^beta(d, h) has zero mean and unit variance at every time step (section 3.2.1)."""
+    noise = colored_noise(beta, (20000, length), np.random.default_rng(1))
+    assert np.abs(noise.mean(axis=0)).max() < 0.05
+    np.testing.assert_allclose(noise.var(axis=0).mean(), 1.0, atol=0.05)
+
+
+def test_colored_noise_correlation_grows_with_beta():
+    lag_one = []
+    for beta in (0.0, 1.0, 2.0, 3.0):
+        x = colored_noise(beta, (2000, 30), np.random.default_rng(2))
+        lag_one.append(np.mean(x[:, 1:] * x[:, :-1]))
+    assert lag_one == sorted(lag_one) and lag_one[0] == pytest.approx(0.0, abs=0.02)
+
+
+def test_truncated_normal_stays_in_bounds_and_matches_moments():
+    rng = np.random.default_rng(3)
+    mean, std = np.array([0.0, 0.9, -0.5]), np.array([0.2, 0.5, 1.0])
+    samples = truncated_normal(mean, std, -1.0, 1.0, 50000, rng)
+    assert samples.min() >= -1.0 and samples.max() <= 1.0
+    assert samples[:, 0].mean() == pytest.approx(0.0, abs=0.01)
+    assert samples[:, 0].std() == pytest.approx(0.2, abs=0.01)  # barely truncated
+
+
+# ---------------------------------------------------------------- budgets
+@pytest.mark.parametrize("budget", sorted(ICEM_BUDGETS))
+def test_budget_table_4(budget):
+    icem = PlannerConfig(algorithm="icem", budget=budget).resolved(task_beta=2.0)
+    assert (icem.iterations, icem.population) == ICEM_BUDGETS[budget]
+    cem = PlannerConfig(algorithm="cem_mpc", budget=budget).resolved(task_beta=2.0)
+    assert (cem.iterations, cem.population) == CEM_BUDGETS[budget]
+    # Table 4's settings spend roughly the nominal budget (within 8%).
+    assert abs(icem.trajectories_per_step() - budget) <= 0.08 * budget
+    assert abs(cem.trajectories_per_step() - budget) <= 0.08 * budget
+
+
+def test_budget_100_is_40_32_25_plus_three_shifted_elites():
+    config = PlannerConfig(budget=100).resolved(task_beta=0.25)
+    assert config.population_sizes() == [40, 32, 25]  # N_i = max(N gamma^-i, 2K), section 3.2.3
+    assert config.trajectories_per_step() == 100
+
+
+def test_unlisted_budget_gets_a_schedule_close_to_it():
+    config = PlannerConfig(budget=120).resolved(task_beta=1.0)
+    assert abs(config.trajectories_per_step() - 120) <= 3
+
+
+def test_resolved_beta_defaults():
+    assert PlannerConfig(algorithm="icem").resolved(task_beta=3.5).noise_beta == 3.5
+    assert PlannerConfig(algorithm="icem", noise_beta=0.0).resolved(task_beta=3.5).noise_beta == 0.0
+    assert PlannerConfig(algorithm="cem_mpc").resolved(task_beta=3.5).noise_beta == 0.0
+
+
+# ------------------------------------------------------------- validation
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        (dict(budget=15), "budget"),
+        (dict(noise_beta=5.5), "noise_beta"),
+        (dict(noise_beta=-1), "noise_beta"),
+        (dict(horizon=0), "horizon"),
+        (dict(sigma_init=0), "sigma_init"),
+        (dict(momentum=1.0), "momentum"),
+        (dict(algorithm="mppi"), "algorithm"),
+        (dict(colored=True), "colored"),
+    ],
+)
+def test_bad_planner_config_names_the_field(kwargs, field):
+    with pytest.raises(ValidationError) as error:
+        PlannerConfig(**kwargs)
+    assert field in str(error.value)
+
+
+def test_colored_noise_needs_clipping():
+    with pytest.raises(ValidationError, match="bounds: clip"):
+        PlannerConfig(algorithm="cem_mpc", noise_beta=2.0)
+    PlannerConfig(algorithm="cem_mpc", noise_beta=2.0, bounds="clip")  # the Fig. 7 "+colored noise" addition
+
+
+# --------------------------------------------------------------- planning
+TARGET = np.linspace(-0.8, 0.8, 10)[:, None] * np.array([1.0, -0.5])
+
+
+def quadratic_cost(actions: np.ndarray) -> np.ndarray:
+    """Distance of each (N, 10, 2) sequence to a fixed target sequence."""
+    return np.sum((actions - TARGET) ** 2, axis=(1, 2))
+
+
+def make(algorithm="icem", seed=0, **overrides):
+    config = PlannerConfig(algorithm=algorithm, budget=100, horizon=10, **overrides).resolved(task_beta=1.0)
+    return CEMPlanner(config, action_dim=2, seed=seed)
+
+
+class Recorder:
+    """A cost function that remembers every batch it was asked to evaluate."""
+
+    def __init__(self):
+        self.batches: list[np.ndarray] = []
+
+    def __call__(self, actions):
+        self.batches.append(actions.copy())
+        return quadratic_cost(actions)
+
+
+@pytest.mark.parametrize("algorithm", ["icem", "cem", "cem_mpc", "cem_pets"])
+def test_same_seed_same_actions(algorithm):
+    def actions(seed):
+        planner = make(algorithm, seed=seed)
+        return np.array([planner.plan(quadratic_cost).action for _ in range(5)])
+
+    np.testing.assert_array_equal(actions(7), actions(7))
+    assert not np.array_equal(actions(7), actions(8))
+
+
+@pytest.mark.parametrize("algorithm", ["icem", "cem", "cem_mpc", "cem_pets"])
+def test_planners_reduce_cost_and_respect_bounds(algorithm):
+    recorder = Recorder()
+    result = make(algorithm).plan(recorder)
+    everything = np.concatenate(recorder.batches)
+    assert everything.min() >= -1.0 and everything.max() <= 1.0
+    random_cost = quadratic_cost(np.random.default_rng(0).uniform(-1, 1, (1000, 10, 2))).mean()
+    assert result.best_cost < 0.5 * random_cost
+    assert result.trajectories == sum(len(b) for b in recorder.batches)
+
+
+def test_icem_spends_its_budget_per_step():
+    planner = make("icem")
+    first, second = Recorder(), Recorder()
+    planner.plan(first)
+    planner.plan(second)
+    assert [len(b) for b in first.batches] == [40, 32, 25]  # no elites to shift yet
+    assert [len(b) for b in second.batches] == [43, 32, 25]  # + 3 shifted elites
+
+
+def test_add_mean_evaluates_the_mean_in_the_last_iteration_only(monkeypatch):
+    planner = make("icem", shift_elites=False, keep_elites=False)
+    means = []
+    sample = planner._sample
+    monkeypatch.setattr(planner, "_sample", lambda mean, std, count: means.append(mean.copy()) or sample(mean, std, count))
+    recorder = Recorder()
+    planner.plan(recorder)
+    np.testing.assert_array_equal(recorder.batches[-1][0], means[-1])
+    for batch, mean in zip(recorder.batches[:-1], means[:-1]):
+        assert not any(np.array_equal(row, mean) for row in batch)
+
+
+def test_best_action_executes_the_best_evaluated_sequence():
+    recorder = Recorder()
+    result = make("icem").plan(recorder)
+    everything = np.concatenate(recorder.batches)
+    best = everything[np.argmin(quadratic_cost(everything))]
+    np.testing.assert_array_equal(result.action, best[0])
+    assert result.best_cost == pytest.approx(quadratic_cost(best[None])[0])
+
+
+def test_mean_action_without_best_action():
+    planner = make("icem", best_action=False)
+    result = planner.plan(quadratic_cost)
+    # The next step's mean is the shifted final mean, so the executed action is its predecessor.
+    np.testing.assert_array_equal(result.plan[1:], planner.mean[:-1])
+    np.testing.assert_array_equal(result.action, result.plan[0])
+
+
+@pytest.mark.parametrize("algorithm, last", [("cem_mpc", "repeat"), ("cem_pets", "zero")])
+def test_shift_initialisation_eq_32_33(algorithm, last):
+    planner = make(algorithm)
+    result = planner.plan(quadratic_cost)
+    final_mean = result.plan  # mean action: plan is the final mean
+    np.testing.assert_array_equal(planner.mean[:-1], final_mean[1:])  # eq. 32
+    expected_last = final_mean[-1] if last == "repeat" else np.zeros(2)  # eq. 33 / CEM_PETS
+    np.testing.assert_array_equal(planner.mean[-1], expected_last)
+
+
+def test_plain_cem_restarts_from_zero_mean():
+    planner = make("cem")
+    planner.plan(quadratic_cost)
+    np.testing.assert_array_equal(planner.mean, np.zeros((10, 2)))
+
+
+def test_keep_elites_carries_the_best_into_later_iterations():
+    """With keep-elites, the best cost never gets worse from one iteration to the next."""
+    costs_per_iteration = []
+
+    def cost(actions):
+        c = quadratic_cost(actions)
+        costs_per_iteration.append(c.min())
+        return c
+
+    planner = make("icem", keep_elites=True, elite_fraction=0.3)
+    result = planner.plan(cost)
+    assert result.best_cost <= min(costs_per_iteration)
+
+
+def test_pets_caps_sigma_at_half_the_distance_to_the_bounds():
+    planner = make("cem_pets")
+    mean = np.full((10, 2), 0.9)
+    capped = planner._cap_std(mean, np.full((10, 2), 0.5))
+    np.testing.assert_allclose(capped, 0.05)
+
+
+def test_colored_noise_samples_are_smoother_with_higher_beta():
+    def roughness(beta):
+        recorder = Recorder()
+        make("icem", noise_beta=beta, sigma_init=0.3).plan(recorder)
+        first = recorder.batches[0]
+        return np.abs(np.diff(first, axis=1)).mean()
+
+    assert roughness(3.0) < roughness(1.0) < roughness(0.0)

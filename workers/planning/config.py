@@ -1,0 +1,173 @@
+"""Configuration of the CEM family of planners (thesis chapter 3, appendix B).
+
+One :class:`PlannerConfig` describes CEM, CEM_MPC, CEM_PETS or iCEM. The
+``algorithm`` sets the default of every switch (Table 5 and section 3.1.1);
+any switch can be overridden, which is how the ablations of Fig. 7 are run
+(e.g. iCEM without colored noise, CEM_MPC with keep-elites added).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Algorithm = Literal["icem", "cem", "cem_mpc", "cem_pets"]
+BoundHandling = Literal["clip", "truncate", "truncate_2sigma"]
+
+# Table 4: budget (trajectories per environment step) -> (CEM-iterations, initial population N).
+ICEM_BUDGETS: dict[int, tuple[int, int]] = {
+    50: (2, 25), 70: (2, 40), 100: (3, 40), 150: (3, 60), 200: (4, 65), 250: (4, 85),
+    300: (4, 100), 400: (5, 120), 500: (5, 150), 1000: (6, 270), 2000: (8, 480), 4000: (10, 900),
+}  # fmt: skip
+CEM_BUDGETS: dict[int, tuple[int, int]] = {
+    50: (2, 25), 70: (2, 35), 100: (2, 50), 150: (2, 75), 200: (3, 66), 250: (3, 83),
+    300: (3, 100), 400: (4, 100), 500: (4, 125), 1000: (4, 250), 2000: (6, 333), 4000: (8, 500),
+}  # fmt: skip
+
+# Switch defaults per algorithm. iCEM: section 3.2 and Table 5. CEM_MPC: shift-
+# initialised mean (eq. 32-33), momentum, truncation at the action bounds
+# (section 3.1.1). CEM_PETS: truncation at 2 sigma with sigma capped at half the
+# distance to the nearest bound, zero as the shifted last step (B.4.1). Plain
+# CEM (Alg. 1): a fresh zero mean every step, no momentum, no memory; the thesis
+# leaves its bound handling open and we truncate at the bounds like CEM_MPC.
+PRESETS: dict[str, dict[str, Any]] = {
+    "icem": dict(
+        momentum=0.1, population_decay=1.25, elite_fraction=0.3, keep_elites=True, shift_elites=True,
+        shift_mean=True, shift_last="repeat", best_action=True, add_mean=True, bounds="clip",
+    ),
+    "cem_mpc": dict(
+        momentum=0.1, population_decay=1.0, elite_fraction=0.0, keep_elites=False, shift_elites=False,
+        shift_mean=True, shift_last="repeat", best_action=False, add_mean=False, bounds="truncate", noise_beta=0.0,
+    ),
+    "cem_pets": dict(
+        momentum=0.1, population_decay=1.0, elite_fraction=0.0, keep_elites=False, shift_elites=False,
+        shift_mean=True, shift_last="zero", best_action=False, add_mean=False, bounds="truncate_2sigma",
+        noise_beta=0.0,
+    ),
+    "cem": dict(
+        momentum=0.0, population_decay=1.0, elite_fraction=0.0, keep_elites=False, shift_elites=False,
+        shift_mean=False, shift_last="repeat", best_action=False, add_mean=False, bounds="truncate", noise_beta=0.0,
+    ),
+}  # fmt: skip
+
+SWITCHES = tuple(PRESETS["icem"])
+
+
+class PlannerConfig(BaseModel):
+    """A planner of the CEM family; every field is a sweepable parameter."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    algorithm: Algorithm = "icem"
+    """Member of the CEM family: icem, cem (Alg. 1), cem_mpc or cem_pets (section 3.1.1). Sets the switch defaults."""
+    budget: int | None = Field(100, ge=1)
+    """Trajectories evaluated per environment step; sets iterations and population by Table 4. Must be >= 2 * elites."""
+    iterations: int | None = Field(None, ge=1)
+    """CEM-iterations per environment step. Default: from the budget (Table 4)."""
+    population: int | None = Field(None, ge=2)
+    """Initial population N (samples in the first CEM-iteration). Default: from the budget (Table 4)."""
+    horizon: int = Field(30, ge=1)
+    """Planning horizon h in environment steps (30 with ground-truth models, Table 6)."""
+    elites: int = Field(10, ge=1)
+    """Size K of the elite-set (Table 5)."""
+    sigma_init: float = Field(0.5, gt=0)
+    """Initial standard deviation sigma_init, in units of half the action range (Table 5); reset every step."""
+    noise_beta: float | None = Field(None, ge=0, le=5)
+    """Colored-noise exponent beta, PSD ~ 1/f^beta (eq. 10); 0 is white. Default: the task's Table 6 value for icem."""
+    momentum: float | None = Field(None, ge=0, lt=1)
+    """Momentum alpha of the refit: mu <- alpha mu + (1 - alpha) mu_elites, same for sigma (section 3.1.1)."""
+    population_decay: float | None = Field(None, ge=1)
+    """Population decay gamma: N_i = max(N gamma^-i, 2K) (section 3.2.3). 1 disables it."""
+    elite_fraction: float | None = Field(None, ge=0, le=1)
+    """Fraction zeta of the elite-set reused by keep-elites and shift-elites (section 3.2.2)."""
+    keep_elites: bool | None = None
+    """Add the best zeta K elites of an iteration to the next iteration's samples (section 3.2.2)."""
+    shift_elites: bool | None = None
+    """Shift the best zeta K final elites one step in time, append a random action, add them to the next step's first iteration."""
+    shift_mean: bool | None = None
+    """Initialise the mean from the previous step's mean shifted by one step (eq. 32); otherwise from zero."""
+    shift_last: Literal["repeat", "zero"] | None = None
+    """Last step of the shifted mean: repeat the previous last step (eq. 33) or zero (CEM_PETS)."""
+    best_action: bool | None = None
+    """Execute the first action of the best sequence evaluated at this step instead of the mean's (section 3.2.3)."""
+    add_mean: bool | None = None
+    """Evaluate the mean sequence in the last CEM-iteration (B.4.3)."""
+    bounds: BoundHandling | None = None
+    """Action bounds: clip samples (iCEM), truncate at the bounds (CEM_MPC) or at 2 sigma with capped sigma (CEM_PETS)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_switch_defaults(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            algorithm = data.get("algorithm", "icem")
+            preset = PRESETS.get(algorithm)
+            if preset is not None:
+                data = {**preset, **{k: v for k, v in data.items() if v is not None}}
+        return data
+
+    @model_validator(mode="after")
+    def _check_consistency(self) -> PlannerConfig:
+        if self.budget is not None and self.budget < 2 * self.elites:
+            raise ValueError(
+                f"budget {self.budget} is below 2K = {2 * self.elites} (twice the elite-set size); "
+                "raise the budget or lower elites"
+            )
+        if self.budget is None and (self.iterations is None or self.population is None):
+            raise ValueError("without a budget, set both iterations and population")
+        if self.population is not None and self.population < self.elites:
+            raise ValueError(f"population {self.population} is smaller than the elite-set ({self.elites})")
+        if self.bounds != "clip" and self.noise_beta not in (None, 0, 0.0):
+            raise ValueError("colored noise (noise_beta > 0) needs bounds: clip; truncated normals are white")
+        return self
+
+    # ----------------------------------------------------------- resolving
+    def resolved(self, task_beta: float) -> PlannerConfig:
+        """The same config with every default made concrete (beta, iterations, population)."""
+        beta = self.noise_beta if self.noise_beta is not None else (task_beta if self.algorithm == "icem" else 0.0)
+        iterations, population = self.iterations, self.population
+        if iterations is None or population is None:
+            table_iterations, table_population = budget_schedule(self.algorithm, self.budget or 0, self)
+            iterations = iterations or table_iterations
+            population = population or table_population
+        return self.model_copy(update=dict(noise_beta=beta, iterations=iterations, population=population))
+
+    def population_sizes(self) -> list[int]:
+        """N_i for every CEM-iteration (section 3.2.3); needs a resolved config."""
+        assert self.iterations is not None and self.population is not None and self.population_decay is not None
+        return [max(int(self.population * self.population_decay**-i), 2 * self.elites) for i in range(self.iterations)]
+
+    def reused_elites(self) -> int:
+        """How many elites keep-elites and shift-elites reuse: floor(zeta K)."""
+        return int(self.elites * (self.elite_fraction or 0.0))
+
+    def trajectories_per_step(self) -> int:
+        """Trajectories evaluated per environment step (the budget actually spent)."""
+        shifted = self.reused_elites() if self.shift_elites else 0
+        return sum(self.population_sizes()) + shifted
+
+
+def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple[int, int]:
+    """(CEM-iterations, initial N) for a budget.
+
+    Budgets listed in Table 4 use its values (the iCEM row for icem, the CEM
+    row for the CEM baselines). Other budgets take the iterations of the
+    nearest listed budget below and the N whose total comes closest to the
+    budget under the config's decay and elite reuse.
+    """
+    table = ICEM_BUDGETS if algorithm == "icem" else CEM_BUDGETS
+    if budget in table:
+        return table[budget]
+    listed = sorted(table)
+    iterations = table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
+    best_population, best_gap = None, math.inf
+    for population in range(max(config.elites, 2), budget + 1):
+        trial = config.model_copy(update=dict(iterations=iterations, population=population))
+        gap = abs(trial.trajectories_per_step() - budget)
+        if gap < best_gap:
+            best_population, best_gap = population, gap
+    if best_population is None:
+        raise ValueError(f"budget {budget} is too small for {iterations} iterations")
+    return iterations, best_population
