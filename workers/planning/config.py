@@ -12,7 +12,7 @@ import bisect
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 Algorithm = Literal["icem", "cem", "cem_mpc", "cem_pets"]
 BoundHandling = Literal["clip", "truncate", "truncate_2sigma"]
@@ -63,6 +63,10 @@ class PlannerConfig(BaseModel):
 
     algorithm: Algorithm = "icem"
     """Member of the CEM family: icem, cem (Alg. 1), cem_mpc or cem_pets (section 3.1.1). Sets the switch defaults."""
+    elites: int = Field(10, ge=1)
+    """Size K of the elite-set (Table 5)."""
+    bounds: BoundHandling | None = None
+    """Action bounds: clip samples (iCEM), truncate at the bounds (CEM_MPC) or at 2 sigma with capped sigma (CEM_PETS)."""
     budget: int | None = Field(100, ge=1)
     """Trajectories evaluated per environment step; sets iterations and population by Table 4. Must be >= 2 * elites."""
     iterations: int | None = Field(None, ge=1)
@@ -71,8 +75,6 @@ class PlannerConfig(BaseModel):
     """Initial population N (samples in the first CEM-iteration). Default: from the budget (Table 4)."""
     horizon: int = Field(30, ge=1)
     """Planning horizon h in environment steps (30 with ground-truth models, Table 6)."""
-    elites: int = Field(10, ge=1)
-    """Size K of the elite-set (Table 5)."""
     sigma_init: float = Field(0.5, gt=0)
     """Initial standard deviation sigma_init, in units of half the action range (Table 5); reset every step."""
     noise_beta: float | None = Field(None, ge=0, le=5)
@@ -95,8 +97,6 @@ class PlannerConfig(BaseModel):
     """Execute the first action of the best sequence evaluated at this step instead of the mean's (section 3.2.3)."""
     add_mean: bool | None = None
     """Evaluate the mean sequence in the last CEM-iteration (B.4.3)."""
-    bounds: BoundHandling | None = None
-    """Action bounds: clip samples (iCEM), truncate at the bounds (CEM_MPC) or at 2 sigma with capped sigma (CEM_PETS)."""
 
     @model_validator(mode="before")
     @classmethod
@@ -108,19 +108,35 @@ class PlannerConfig(BaseModel):
                 data = {**preset, **{k: v for k, v in data.items() if v is not None}}
         return data
 
-    @model_validator(mode="after")
-    def _check_consistency(self) -> PlannerConfig:
-        if self.budget is not None and self.budget < 2 * self.elites:
+    @field_validator("budget")
+    @classmethod
+    def _budget_covers_two_elite_sets(cls, budget: int | None, info: ValidationInfo) -> int | None:
+        elites = info.data.get("elites")
+        if budget is not None and elites is not None and budget < 2 * elites:
             raise ValueError(
-                f"budget {self.budget} is below 2K = {2 * self.elites} (twice the elite-set size); "
-                "raise the budget or lower elites"
+                f"budget {budget} is below 2K = {2 * elites} (twice the elite-set size); raise it or lower elites"
             )
+        return budget
+
+    @field_validator("population")
+    @classmethod
+    def _population_holds_the_elites(cls, population: int | None, info: ValidationInfo) -> int | None:
+        elites = info.data.get("elites")
+        if population is not None and elites is not None and population < elites:
+            raise ValueError(f"population {population} is smaller than the elite-set ({elites})")
+        return population
+
+    @field_validator("noise_beta")
+    @classmethod
+    def _colored_noise_needs_clipping(cls, beta: float | None, info: ValidationInfo) -> float | None:
+        if beta not in (None, 0.0) and info.data.get("bounds") not in (None, "clip"):
+            raise ValueError("colored noise (noise_beta > 0) needs bounds: clip; truncated normals are white")
+        return beta
+
+    @model_validator(mode="after")
+    def _schedule_is_defined(self) -> PlannerConfig:
         if self.budget is None and (self.iterations is None or self.population is None):
             raise ValueError("without a budget, set both iterations and population")
-        if self.population is not None and self.population < self.elites:
-            raise ValueError(f"population {self.population} is smaller than the elite-set ({self.elites})")
-        if self.bounds != "clip" and self.noise_beta not in (None, 0, 0.0):
-            raise ValueError("colored noise (noise_beta > 0) needs bounds: clip; truncated normals are white")
         return self
 
     # ----------------------------------------------------------- resolving

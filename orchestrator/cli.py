@@ -1,0 +1,279 @@
+"""The ``icemlab`` command line: thin wrappers over sweep, scheduler, tracking, report and bench."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+DESCRIPTION = """\
+icemlab runs model-based planning experiments (iCEM and the CEM baselines on
+MuJoCo ground truth) as sweeps: a YAML file in, Ray trials out, every result
+in MLflow. Locally nothing needs to be started: Ray runs in-process and MLflow
+writes to ./mlflow.db.
+
+  icemlab run sweeps/quickstart.yaml           run a sweep (local Ray, ./mlflow.db)
+  icemlab ui                                   open the MLflow dashboard on ./mlflow.db
+  icemlab report sweeps/quickstart.yaml        table and plots, next to the thesis
+  icemlab run SWEEP --address ray://head:10001 --tracking-uri http://mlflow:5000
+"""
+
+
+def _add_tracking(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--tracking-uri",
+        default=None,
+        help="MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else sqlite:///./mlflow.db)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="icemlab", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = commands.add_parser(
+        "run",
+        help="run a sweep",
+        description="Validate a sweep, then run its trials on Ray and log them to MLflow. "
+        "Finished trials (same config and seed) are never run twice within a sweep run; "
+        "--resume continues the latest run of the sweep after a crash or Ctrl-C.",
+    )
+    run.add_argument("sweep", type=Path, help="sweep YAML file")
+    run.add_argument(
+        "--address",
+        default=os.environ.get("RAY_ADDRESS"),
+        help="Ray cluster address, e.g. ray://head:10001 or 10.0.0.1:6379 (default: $RAY_ADDRESS, else a local Ray)",
+    )
+    _add_tracking(run)
+    run.add_argument("--resume", action="store_true", help="continue the latest run of this sweep: run only missing trials")
+    run.add_argument("--max-concurrent", type=int, default=None, metavar="N", help="at most N trials at a time")
+    run.add_argument("--quiet", action="store_true", help="no progress display")
+
+    validate = commands.add_parser(
+        "validate", help="check a sweep without running it",
+        description="Check a sweep file and every trial it expands to; print one FILE:LINE: path: message "
+        "line per problem and exit 2, or the trials and exit 0. Starts nothing.",
+    )  # fmt: skip
+    validate.add_argument("sweep", type=Path)
+    validate.add_argument("--quiet", action="store_true", help="print nothing when the sweep is valid")
+
+    status = commands.add_parser("status", help="what ran, what runs, what failed",
+                                 description="Without SWEEP: every sweep in the store. With SWEEP (file or name): its trials.")  # fmt: skip
+    status.add_argument("sweep", nargs="?", help="sweep file or sweep name")
+    _add_tracking(status)
+
+    report_cmd = commands.add_parser("report", help="summary table and plots of a sweep, next to the thesis",
+                                     description="Summarise the latest run of a sweep: mean +- sem per configuration "
+                                     "with the thesis's Table 3 figures, a CSV and a budget plot (Fig. 5 style).")  # fmt: skip
+    report_cmd.add_argument("sweep", help="sweep file or sweep name")
+    report_cmd.add_argument("--output", type=Path, default=None, help="directory for summary.csv and plots (default: reports/NAME)")
+    _add_tracking(report_cmd)
+
+    ui = commands.add_parser("ui", help="open the MLflow dashboard on the store",
+                             description="Serve the MLflow UI for the tracking store (default ./mlflow.db) on 127.0.0.1.")  # fmt: skip
+    _add_tracking(ui)
+    ui.add_argument("--host", default="127.0.0.1")
+    ui.add_argument("--port", type=int, default=5000)
+
+    bench = commands.add_parser(
+        "bench", help="planner speed vs raw MuJoCo, service vs in-process",
+        description="Measure, in one run: raw single-thread mj_step throughput per task; iCEM planning "
+        "throughput at each budget (horizon 30) and its ratio to raw x threads; seconds per environment "
+        "step next to the thesis's Table 2; and the service's overhead against in-process planning.",
+    )  # fmt: skip
+    bench.add_argument("--tasks", nargs="+", default=["halfcheetah_running", "humanoid_standup"])
+    bench.add_argument("--budgets", nargs="+", type=int, default=[100, 300])
+    bench.add_argument("--steps", type=int, default=20, help="MPC steps measured per task and budget")
+    bench.add_argument("--threads", type=int, default=None, help="rollout threads (default: all CPUs)")
+    bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (no Ray)")
+    bench.add_argument("--json", action="store_true", help="print the figures as one JSON document")
+
+    commands.add_parser("tasks", help="list the tasks", description="List the tasks a sweep can name.")
+    commands.add_parser("schema", help="print the JSON Schema of sweep files",
+                        description="Print the JSON Schema of sweep files (for editor completion).")  # fmt: skip
+    return parser
+
+
+# ----------------------------------------------------------------- commands
+def _load(path: Path):
+    from orchestrator.sweep import SweepError, load_sweep
+
+    try:
+        return load_sweep(path)
+    except SweepError as error:
+        for problem in error.problems:
+            print(problem, file=sys.stderr)
+        print(f"icemlab: {len(error.problems)} problem(s) in {path}; nothing was started", file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+
+
+def cmd_validate(args) -> int:
+    loaded = _load(args.sweep)
+    if not args.quiet:
+        print(f"{args.sweep}: valid, {len(loaded.trials)} trial(s)")
+        for trial in loaded.trials:
+            swept = ", ".join(f"{k}={v}" for k, v in trial.overrides.items())
+            print(f"  {trial.key}  seed {trial.config.seed}  {swept}")
+    return 0
+
+
+def cmd_run(args) -> int:
+    loaded = _load(args.sweep)
+    from orchestrator.progress import ProgressDisplay
+    from orchestrator.scheduler import SweepScheduler
+    from orchestrator.tracking import Tracker
+
+    tracker = Tracker(args.tracking_uri)
+    display = None if args.quiet else ProgressDisplay()
+    print(f"icemlab: running {loaded.sweep.name} ({len(loaded.trials)} trials), tracking at {tracker.uri}", file=sys.stderr)
+    scheduler = SweepScheduler(
+        loaded, tracker, address=args.address, resume=args.resume, max_concurrent=args.max_concurrent, display=display
+    )
+    try:
+        outcome = scheduler.run()
+    except KeyboardInterrupt:
+        if display:
+            display.close()
+        print("icemlab: interrupted; running trials were stopped and marked KILLED. "
+              f"Continue with: icemlab run {args.sweep} --resume", file=sys.stderr)  # fmt: skip
+        return EXIT_INTERRUPTED
+    if display:
+        display.close()
+    print(outcome.table)
+    print(
+        f"\n{outcome.finished} trial(s) finished, {outcome.failed} failed, {outcome.skipped} already done. "
+        f"Parent run {outcome.parent_run_id}; see `icemlab ui` (tracking URI {tracker.uri}).",
+        file=sys.stderr,
+    )
+    return 1 if outcome.failed else 0
+
+
+def _sweep_name(argument: str) -> tuple[str, str | None]:
+    """(sweep name, experiment) from a file path or a plain name."""
+    path = Path(argument)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        loaded = _load(path)
+        return loaded.sweep.name, loaded.sweep.tracking.experiment or loaded.sweep.name
+    return argument, argument
+
+
+def cmd_status(args) -> int:
+    from orchestrator.tracking import Tracker
+
+    tracker = Tracker(args.tracking_uri)
+    if not args.sweep:
+        sweeps = tracker.sweeps()
+        if not sweeps:
+            print(f"no sweeps in {tracker.uri}; start one with: icemlab run sweeps/quickstart.yaml")
+            return 0
+        for run in sweeps:
+            children = tracker.trial_runs(run.info.run_id)
+            current = [c for c in children if not c.superseded]
+            counts = {s: sum(c.status == s for c in current) for s in ("FINISHED", "RUNNING", "FAILED", "KILLED")}
+            print(f"{run.data.tags.get('icemlab.sweep', '?'):24s} {run.info.status:9s} run {run.info.run_id}  "
+                  + "  ".join(f"{k.lower()} {v}" for k, v in counts.items()))  # fmt: skip
+        return 0
+    name, experiment = _sweep_name(args.sweep)
+    parent = tracker.find_sweep_run(experiment, name)
+    if parent is None:
+        print(f"sweep {name!r} has not run in {tracker.uri}")
+        return 1
+    print(f"sweep {name}: {parent.info.status}, parent run {parent.info.run_id}")
+    for child in sorted(tracker.trial_runs(parent.info.run_id), key=lambda c: c.run_id):
+        if child.superseded:
+            continue
+        figure = child.metrics.get("mean_return")
+        error = child.tags.get("icemlab.error", "").splitlines()[0:1]
+        print(f"  {child.trial_key}  {child.status:9s} {child.tags.get('mlflow.runName', ''):40s} "
+              f"{'' if figure is None else f'return {figure:.1f}'} {error[0] if error else ''}")  # fmt: skip
+    return 0
+
+
+def cmd_report(args) -> int:
+    from orchestrator import report
+    from orchestrator.scheduler import trial_result_from_run
+    from orchestrator.tracking import FINISHED, Tracker
+
+    tracker = Tracker(args.tracking_uri)
+    name, experiment = _sweep_name(args.sweep)
+    parent = tracker.find_sweep_run(experiment, name)
+    if parent is None:
+        print(f"sweep {name!r} has not run in {tracker.uri}; run it with: icemlab run SWEEP.yaml", file=sys.stderr)
+        return 1
+    runs = [r for r in tracker.trial_runs(parent.info.run_id) if r.status == FINISHED and not r.superseded]
+    groups = report.summarize(trial_result_from_run(r) for r in runs)
+    print(report.format_table(groups))
+    output = args.output or Path("reports") / name
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "summary.csv").write_text(report.to_csv(groups))
+    if groups:
+        figure = report.budget_figure(groups)
+        figure.savefig(output / "budget_curve.png", dpi=110)
+        report.close(figure)
+    print(f"\nwrote {output}/summary.csv and {output}/budget_curve.png", file=sys.stderr)
+    return 0
+
+
+def cmd_ui(args) -> int:
+    from orchestrator.tracking import resolve_tracking_uri
+
+    uri = resolve_tracking_uri(args.tracking_uri)
+    env = dict(os.environ, MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false", MLFLOW_DISABLE_TELEMETRY="true")
+    command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
+               "--host", args.host, "--port", str(args.port), "--workers", "1"]  # fmt: skip
+    print(f"MLflow dashboard for {uri} at http://{args.host}:{args.port} (Ctrl-C stops it)", file=sys.stderr)
+    try:
+        return subprocess.call(command, env=env)
+    except KeyboardInterrupt:
+        return 0
+
+
+def cmd_bench(args) -> int:
+    from orchestrator.bench import print_report, run_benchmark
+
+    results = run_benchmark(args.tasks, args.budgets, args.steps, args.threads, service=not args.no_service)
+    if args.json:
+        print(json.dumps(results, indent=2))
+    else:
+        print_report(results)
+    return 0
+
+
+def cmd_tasks(args) -> int:
+    from workers.tasks import TASKS
+
+    for name, task in TASKS.items():
+        print(f"{name:25s} beta {task.colored_noise_beta:<4}  {task.description}")
+    return 0
+
+
+def cmd_schema(args) -> int:
+    from orchestrator.sweep import sweep_json_schema
+
+    print(json.dumps(sweep_json_schema(), indent=2))
+    return 0
+
+
+COMMANDS = {
+    "run": cmd_run, "validate": cmd_validate, "status": cmd_status, "report": cmd_report,
+    "ui": cmd_ui, "bench": cmd_bench, "tasks": cmd_tasks, "schema": cmd_schema,
+}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    args = build_parser().parse_args(argv)
+    return COMMANDS[args.command](args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
