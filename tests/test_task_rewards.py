@@ -33,12 +33,7 @@ def prefix_action(task, observation, rng):
     if task.name == "fetch_pick_place_sparse":
         gripper, box = observation["observation"][:3], observation["observation"][3:6]
         return np.append(np.clip((box - gripper) / 0.05, -1, 1), 1.0)
-    return rng.uniform(-1, 1, ACTION_DIMS[task.name])
-
-
-
-ACTION_DIMS = {"halfcheetah_running": 6, "humanoid_standup": 17, "fetch_pick_place_sparse": 4,
-               "door": 28, "door_sparse": 28, "relocate": 30, "point_reach": 2}
+    return rng.uniform(-1, 1, task.action_dim)
 
 
 def reach_state(task, env, seed: int):
@@ -55,7 +50,8 @@ def test_batch_rewards_equal_real_environment(name, task_bundle):
     seed = 11
     reach_state(task, env, seed)
     state = task.capture(env)
-    actions = np.random.default_rng(3).uniform(-1.2, 1.2, (SEQUENCES, HORIZON, env.action_space.shape[0]))
+    assert env.action_space.shape == (task.action_dim,)
+    actions = np.random.default_rng(3).uniform(-1.2, 1.2, (SEQUENCES, HORIZON, task.action_dim))
     with BatchEvaluator(task, model, threads=2) as evaluator:
         batch_rewards = evaluator.rewards(state, actions)
     assert batch_rewards.shape == (SEQUENCES, HORIZON)

@@ -17,6 +17,7 @@ become further classes here with their own actors.
 from __future__ import annotations
 
 import os
+import resource
 import threading
 import time
 import uuid
@@ -164,3 +165,7 @@ class TrialRunner:
 
     def pid(self) -> int:
         return os.getpid()
+
+    def peak_memory_mb(self) -> float:
+        """Peak resident memory of this process."""
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -77,6 +77,7 @@ class Door(_AdroitTask):
 
     name = "door"
     env_id = "AdroitHandDoor-v1"
+    action_dim = 28
     colored_noise_beta = 2.5
     frames = (Frame("pos", "site", "S_handle"), Frame("pos", "site", "S_grasp"))
     per_episode_model_fields = ("body_pos",)  # reset moves the door frame
@@ -128,6 +129,7 @@ class Relocate(_AdroitTask):
 
     name = "relocate"
     env_id = "AdroitHandRelocate-v1"
+    action_dim = 30
     colored_noise_beta = 3.5
     frames = (
         Frame("pos", "xbody", "Object"),

@@ -146,6 +146,8 @@ class GroundTruthTask(ABC):
     """Environment steps per episode (thesis Table 7)."""
     frame_skip: ClassVar[int]
     """Physics steps per environment step (the environment's frame_skip / n_substeps)."""
+    action_dim: ClassVar[int]
+    """Dimensions d of the action space."""
     colored_noise_beta: ClassVar[float]
     """Colored-noise exponent beta of iCEM for this task (thesis Table 6)."""
     frames: ClassVar[tuple[Frame, ...]] = ()

@@ -33,6 +33,7 @@ class FetchPickPlaceSparse(GroundTruthTask):
     env_id = "FetchPickAndPlaceDense-v4"
     episode_length = 50
     frame_skip = 20
+    action_dim = 4
     colored_noise_beta = 3.0
     frames = (
         Frame("pos", "xbody", GRIPPER_BODY),

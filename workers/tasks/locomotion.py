@@ -24,6 +24,7 @@ class HalfCheetahRunning(GroundTruthTask):
     env_id = "HalfCheetah-v5"
     episode_length = 1000
     frame_skip = 5
+    action_dim = 6
     colored_noise_beta = 0.25
     description = "HalfCheetah, forward velocity with a flip penalty (1000 steps)"
 
@@ -69,6 +70,7 @@ class HumanoidStandup(GroundTruthTask):
     env_id = "HumanoidStandup-v5"
     episode_length = 1000
     frame_skip = 5
+    action_dim = 17
     colored_noise_beta = 2.0
     description = "Humanoid standing up from lying on the floor (1000 steps)"
 

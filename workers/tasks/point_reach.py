@@ -62,6 +62,7 @@ class PointReach(GroundTruthTask):
     env_id = ENV_ID
     episode_length = 50
     frame_skip = 2
+    action_dim = 2
     colored_noise_beta = 1.0
     frames = (Frame("pos", "site", "tip"),)
     description = "tiny point mass reaching a goal, for tests and smoke runs (50 steps)"
