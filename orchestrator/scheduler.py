@@ -194,8 +194,9 @@ class SweepScheduler:
         results: list[report.TrialResult] = self._previous_results(parent_id)
         done = failed = 0
         started = time.monotonic()
-        durations: list[float] = []
         last_display = 0.0
+        total_steps = sum(self._trial_steps(t) for t in pending)
+        finished_steps = 0
 
         while queue or self._active:
             while queue and len(self._active) < concurrent:
@@ -223,6 +224,7 @@ class SweepScheduler:
                         self._active.append(retry)
                     else:
                         self.tracker.end_trial(active.run_id, FAILED, error=message)
+                        total_steps -= self._trial_steps(active.trial)
                         failed += 1
                     continue
                 self._record_episode(active, episode)
@@ -232,17 +234,16 @@ class SweepScheduler:
                 else:
                     self._end_attempt(active)
                     results.append(self._finish_trial(active))
-                    durations.append(time.monotonic() - active.started)
+                    finished_steps += self._trial_steps(active.trial)
                     done += 1
 
             self._poll_progress()
             now = time.monotonic()
             if self.display is not None and (now - last_display >= PROGRESS_POLL_SECONDS or not self._active):
                 last_display = now
-                eta = None
-                if durations:
-                    remaining = len(queue) + len(self._active)
-                    eta = np.mean(durations) * remaining / max(1, min(concurrent, remaining))
+                steps_done = finished_steps + sum(self._steps_done(a) for a in self._active)
+                rate = steps_done / max(now - started, 1e-9)
+                eta = (total_steps - steps_done) / rate if steps_done > 0 else None
                 self.display(SweepState(
                     self.sweep.name, len(self.loaded.trials), skipped + done, failed,
                     [(trial_label(a.trial), a.trial.config.episodes, a.progress) for a in self._active], now - started, eta,
@@ -254,6 +255,19 @@ class SweepScheduler:
         return SweepOutcome(parent_id, done, failed, skipped, table)
 
     # ------------------------------------------------------------ trials
+    @staticmethod
+    def _trial_steps(trial: Trial) -> int:
+        """Environment steps a trial runs (for the ETA)."""
+        from workers.tasks import TASKS
+
+        length = trial.config.max_steps or TASKS[trial.config.task].episode_length
+        return trial.config.episodes * length
+
+    def _steps_done(self, active: ActiveTrial) -> int:
+        finished_episodes = sum(len(r.rewards) for r in active.reports)
+        in_episode = active.progress.get("step", 0) if active.progress.get("episode") == active.episode else 0
+        return finished_episodes + in_episode
+
     def _launch(self, trial: Trial, threads: int, attempt: int) -> ActiveTrial:
         import ray
 
@@ -378,14 +392,16 @@ class SweepScheduler:
             )
 
     def _abort(self, parent_id: str) -> None:
-        """Ctrl-C: stop the running trials; their runs and the sweep's end KILLED."""
-        for active in list(getattr(self, "_active", [])):
-            try:
-                self._end_attempt(active)
-            except Exception:
-                pass
-            self.tracker.end_trial(active.run_id, KILLED, error="interrupted (Ctrl-C)")
+        """Ctrl-C: the running trials' runs and the sweep's end KILLED, then their actors are stopped."""
+        active = list(getattr(self, "_active", []))
+        for trial in active:
+            self.tracker.end_trial(trial.run_id, KILLED, error="interrupted (Ctrl-C)")
         self.tracker.end_sweep(parent_id, KILLED, {}, {"icemlab.interrupted": "true"})
+        for trial in active:
+            try:
+                self._end_attempt(trial)
+            except Exception:  # Ray itself may be going down with the same signal
+                pass
 
 
 def trial_result_from_run(run: TrialRun) -> report.TrialResult:

@@ -337,6 +337,9 @@ def load_sweep(path: str | Path) -> LoadedSweep:
         mark = getattr(error, "problem_mark", None)
         line = mark.line + 1 if mark is not None else 1
         reason = getattr(error, "problem", None) or str(error)
+        context, context_mark = getattr(error, "context", None), getattr(error, "context_mark", None)
+        if context and context_mark is not None and context_mark.line + 1 != line:
+            reason += f" ({context} on line {context_mark.line + 1})"
         raise SweepError([SweepProblem(file, line, "(yaml)", f"YAML syntax error: {reason}")]) from None
     if data is None:
         raise SweepError([SweepProblem(file, 1, "(file)", "empty sweep file; see sweeps/quickstart.yaml")])

@@ -1,0 +1,137 @@
+"""The command line without Ray: help, validation errors, shipped sweeps, schema."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from helpers import cli, write_sweep
+from orchestrator.cli import main
+from orchestrator.sweep import SweepError, load_sweep, sweep_json_schema
+
+ROOT = Path(__file__).resolve().parents[1]
+PROBLEM_LINE = re.compile(r"^(?P<file>[^:]+):(?P<line>\d+): (?P<path>[^:]+): (?P<message>.+)$")
+COMMANDS = ["run", "validate", "status", "report", "ui", "bench", "tasks", "schema"]
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert f"usage: icemlab {command}" in out and len(out.splitlines()) > 3
+
+
+def test_top_level_help_shows_the_main_commands(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert "icemlab run sweeps/quickstart.yaml" in out and all(c in out for c in ("run", "validate", "bench"))
+
+
+BAD_SWEEPS = {
+    # name: (file text, expected (line, path) of the first problem, message fragment)
+    "yaml_syntax": ("name: x\ntask: point_reach\nbase:\n  planner: {budget: 100\n", (5, "(yaml)"), "YAML syntax error"),
+    "empty": ("", (1, "(file)"), "empty sweep file"),
+    "not_a_mapping": ("- just\n- a list\n", (1, "(file)"), "mapping"),
+    "unknown_key": ("name: x\ntask: point_reach\nbase:\n  planner:\n    budgte: 100\n", (5, "base.planner.budgte"), "did you mean 'budget'"),
+    "unknown_top_key": ("name: x\ntask: point_reach\nseed: [1]\n", (3, "seed"), "did you mean 'seeds'"),
+    "wrong_type": ("name: x\ntask: point_reach\nbase:\n  planner:\n    budget: lots\n", (5, "base.planner.budget"), "integer"),
+    "budget_below_2k": ("name: x\ntask: point_reach\nbase:\n  planner:\n    budget: 15\n", (5, "base.planner.budget"), "below 2K"),
+    "negative_seed": ("name: x\ntask: point_reach\nseeds: [0, -3]\n", (3, "seeds"), ">= 0"),
+    "beta_out_of_range": ("name: x\ntask: point_reach\nbase:\n  planner:\n    noise_beta: 6\n", (5, "base.planner.noise_beta"), "less than or equal to 5"),
+    "horizon_zero": ("name: x\ntask: point_reach\nbase:\n  planner:\n    horizon: 0\n", (5, "base.planner.horizon"), "greater than or equal to 1"),
+    "unknown_task": ("name: x\ntask: halfcheetah_runing\n", (2, "task"), "did you mean 'halfcheetah_running'"),
+    "swept_unknown_task": ("name: x\ntask: point_reach\nparameters:\n  task:\n    values: [point_reach, door_spars]\n", (4, "task"), "did you mean 'door_sparse'"),
+    "swept_bad_budget": ("name: x\ntask: point_reach\nparameters:\n  planner.budget:\n    values: [5, 100]\n", (4, "planner.budget"), "below 2K"),
+    "unknown_parameter_path": ("name: x\ntask: point_reach\nparameters:\n  planner.sigma:\n    values: [0.3]\n", (4, "parameters.planner.sigma"), "did you mean 'planner.sigma_init'"),
+    "too_many_trials": ("name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n", (4, "parameters"), "above max_trials = 5"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SWEEPS))
+def test_bad_sweeps_give_located_one_line_errors(case, tmp_path):
+    text, (line, path), fragment = BAD_SWEEPS[case]
+    sweep = tmp_path / f"{case}.yaml"
+    sweep.write_text(text)
+    with pytest.raises(SweepError) as error:
+        load_sweep(sweep)
+    first = error.value.problems[0]
+    assert (first.line, first.path) == (line, path)
+    assert fragment in first.message
+    assert PROBLEM_LINE.match(str(first)), str(first)
+
+
+def test_binary_file_is_rejected(tmp_path):
+    sweep = tmp_path / "binary.yaml"
+    sweep.write_bytes(b"\x7fELF\x02\x01\x01\x00\x00\x00")
+    with pytest.raises(SweepError, match="binary file"):
+        load_sweep(sweep)
+
+
+def test_every_problem_is_reported_at_once(tmp_path):
+    sweep = tmp_path / "many.yaml"
+    sweep.write_text("name: x\ntask: point_reach\nbase:\n  planner:\n    horizon: 0\n    budgett: 3\nseeds: [-1]\n")
+    with pytest.raises(SweepError) as error:
+        load_sweep(sweep)
+    assert [p.line for p in error.value.problems] == [5, 6, 7]
+
+
+def test_run_with_a_bad_sweep_exits_2_and_starts_nothing(tmp_path):
+    sweep = tmp_path / "bad.yaml"
+    sweep.write_text(BAD_SWEEPS["unknown_key"][0])
+    ray_sessions = set(Path("/tmp/ray").glob("session_*")) if Path("/tmp/ray").exists() else set()
+    result = cli("run", str(sweep), cwd=tmp_path)
+    assert result.returncode == 2
+    problems = [line for line in result.stderr.splitlines() if PROBLEM_LINE.match(line)]
+    assert problems == [f"{sweep}:5: base.planner.budgte: unknown key (did you mean 'budget'?)"]
+    assert "nothing was started" in result.stderr
+    assert not (tmp_path / "mlflow.db").exists()  # no MLflow store, so no run
+    after = set(Path("/tmp/ray").glob("session_*")) if Path("/tmp/ray").exists() else set()
+    assert after == ray_sessions  # no Ray session
+
+
+def test_validate_lists_trials(tmp_path):
+    sweep = write_sweep(tmp_path, parameters={"planner.budget": {"values": [50, 100]}}, seeds=[0, 1])
+    result = cli("validate", str(sweep), cwd=tmp_path)
+    assert result.returncode == 0
+    assert "valid, 4 trial(s)" in result.stdout
+
+
+@pytest.mark.parametrize("sweep", sorted(str(p.relative_to(ROOT)) for p in (ROOT / "sweeps").rglob("*.yaml")))
+def test_shipped_sweeps_are_valid(sweep):
+    loaded = load_sweep(ROOT / sweep)
+    assert loaded.trials
+
+
+def test_quickstart_has_at_least_four_trials():
+    assert len(load_sweep(ROOT / "sweeps" / "quickstart.yaml").trials) >= 4
+
+
+def test_committed_schema_is_current():
+    committed = json.loads((ROOT / "sweeps" / "sweep.schema.json").read_text())
+    assert committed == json.loads(json.dumps(sweep_json_schema()))
+
+
+def test_schema_describes_every_field():
+    schema = sweep_json_schema()
+    assert "parameters" in schema["properties"]
+    planner = schema["$defs"]["PlannerConfig"]["properties"]
+    assert all(field.get("description") for field in planner.values())
+
+
+def test_trial_keys_ignore_resources_but_not_config(tmp_path):
+    a = load_sweep(write_sweep(tmp_path, "a")).trials[0]
+    b = load_sweep(write_sweep(tmp_path, "b", resources={"simulation_workers": 2})).trials[0]
+    c = load_sweep(write_sweep(tmp_path, "c", seeds=[1])).trials[0]
+    assert a.key == b.key != c.key
+
+
+def test_random_parameters_are_repeatable(tmp_path):
+    fields = dict(parameters={"planner.sigma_init": {"distribution": "uniform", "low": 0.2, "high": 0.8}}, num_samples=3)
+    first = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
+    second = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
+    assert first == second and len(set(first)) == 3 and all(0.2 <= s <= 0.8 for s in first)
