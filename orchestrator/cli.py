@@ -139,6 +139,9 @@ def cmd_run(args) -> int:
     )
     try:
         outcome = scheduler.run()
+    except ConnectionError as error:
+        print(f"icemlab: {error}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         if display:
             display.close()

@@ -97,7 +97,14 @@ def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     if address:
-        ray.init(address=address, **common)
+        try:
+            ray.init(address=address, **common)
+        except ConnectionError as error:
+            raise ConnectionError(
+                f"cannot connect to the Ray cluster at {address} ({error}). Check the address (ray://HOST:10001 "
+                "for Ray Client, HOST:6379 for the GCS); if the cluster uses token authentication, set "
+                "RAY_AUTH_MODE=token and provide the token (RAY_AUTH_TOKEN or ~/.ray/auth_token)."
+            ) from None
     else:
         ray.init(num_cpus=num_cpus or os.cpu_count(), **common)
     return True
@@ -160,29 +167,29 @@ class SweepScheduler:
     def run(self) -> SweepOutcome:
         import ray
 
-        parent_id, previous_runs = self._parent_run()
-        finished_keys = {r.trial_key for r in previous_runs if r.status == FINISHED and not r.superseded}
-        open_attempts: dict[str, list[TrialRun]] = {}
-        attempts_so_far: dict[str, int] = {}
-        for run in previous_runs:
-            attempts_so_far[run.trial_key] = attempts_so_far.get(run.trial_key, 0) + 1
-            if run.trial_key not in finished_keys and not run.superseded:
-                open_attempts.setdefault(run.trial_key, []).append(run)
-        pending = [t for t in self.loaded.trials if t.key not in finished_keys]
-        skipped = len(self.loaded.trials) - len(pending)
-
-        started_ray = connect_ray(self.address)
+        started_ray = connect_ray(self.address)  # before any MLflow run exists: a bad address leaves no trace
+        parent_id = None
         try:
+            parent_id, previous_runs = self._parent_run()
+            finished_keys = {r.trial_key for r in previous_runs if r.status == FINISHED and not r.superseded}
+            open_attempts: dict[str, list[TrialRun]] = {}
+            attempts_so_far: dict[str, int] = {}
+            for run in previous_runs:
+                attempts_so_far[run.trial_key] = attempts_so_far.get(run.trial_key, 0) + 1
+                if run.trial_key not in finished_keys and not run.superseded:
+                    open_attempts.setdefault(run.trial_key, []).append(run)
+            pending = [t for t in self.loaded.trials if t.key not in finished_keys]
+            skipped = len(self.loaded.trials) - len(pending)
             cpus = ray.cluster_resources().get("CPU", 1)
             threads, concurrent = self._layout(cpus, len(pending))
-            outcome = self._drive(parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far)
+            return self._drive(parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far)
         except KeyboardInterrupt:
-            self._abort(parent_id)
+            if parent_id is not None:
+                self._abort(parent_id)
             raise
         finally:
             if started_ray:
                 ray.shutdown()
-        return outcome
 
     def _drive(self, parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far):
         import ray
