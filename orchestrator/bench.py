@@ -1,12 +1,12 @@
 """``icemlab bench``: speed figures measured in one run, as ratios.
 
-* raw: single-thread native MuJoCo stepping of the task's planning model
-  (mujoco.rollout on the calling thread, random action sequences of the
-  planning horizon from a state of the task), in physics steps per second;
 * planner: iCEM planning throughput during MPC at each budget (horizon 30),
-  in physics steps per second of planning time, with the ratio
-  planner / (raw x threads) and seconds per environment step next to the
-  thesis's Table 2;
+  in physics steps per second of planning time, and seconds per environment
+  step next to the thesis's Table 2;
+* raw: the same batches the planner evaluated, re-simulated by native mj_step
+  loops on one thread, in physics steps per second; the ratio
+  planner / (raw x threads) is the share of the machine's physics rate that
+  planning achieves;
 * service: seconds per environment step through the service (a TrialRunner
   actor with its SimulationPool, as ``icemlab run`` lays it out) against the
   same MPC loop in-process, and with one remote SimulationWorker actor.
@@ -23,12 +23,11 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from mujoco import rollout as mj_rollout
 
 from orchestrator.report import PUBLISHED_SECONDS_PER_STEP
 from workers.actors import TrialRunner
-from workers.planning import PlannerConfig
-from workers.rollout import default_threads
+from workers.planning import CEMPlanner, PlannerConfig
+from workers.rollout import BatchEvaluator, default_threads
 from workers.tasks import GroundTruthTask, SimState, make_task
 
 HORIZON = 30
@@ -36,46 +35,84 @@ SERVICE_TASK = "halfcheetah_running"
 SERVICE_BUDGET = 100
 
 
-def raw_physics_rate(task: GroundTruthTask, model: mujoco.MjModel, state: SimState, seconds: float = 2.0) -> float:
-    """Single-thread physics steps per second of the planning model from ``state``."""
-    rng = np.random.default_rng(0)
-    data = mujoco.MjData(model)
-    runner = mj_rollout.Rollout(nthread=0)
-    spec = task.control_spec(model)
+class RecordingEvaluator:
+    """Passes cost requests to an evaluator and keeps every batch it was asked for."""
+
+    def __init__(self, evaluator: BatchEvaluator):
+        self.evaluator = evaluator
+        self.batches: list[tuple[SimState, np.ndarray]] = []
+
+    def costs(self, state: SimState, actions: np.ndarray) -> np.ndarray:
+        self.batches.append((state, actions.copy()))
+        return self.evaluator.costs(state, actions)
+
+
+def raw_physics_rate(task: GroundTruthTask, model: mujoco.MjModel, batches) -> float:
+    """Physics steps per second of one thread re-simulating the planner's own batches.
+
+    The same states and action sequences the planner evaluated, stepped by
+    native mj_step loops on the calling thread (mujoco.rollout, nthread=0), so
+    that contacts and controls match what the planner simulated.
+    """
+    single = BatchEvaluator(task, model, threads=0)
     steps, elapsed = 0, 0.0
     try:
-        while elapsed < seconds:
-            actions = rng.uniform(-1, 1, (1, HORIZON, task.action_dim))
-            if task.feedback_control:
-                # Feedback controls need the simulated state; hold the captured ones instead.
-                control = np.concatenate([np.zeros((1, model.nu)), state.mocap_pos.reshape(1, -1),
-                                          state.mocap_quat.reshape(1, -1)], axis=1)[:, None]  # fmt: skip
-            else:
-                control = np.repeat(task.controls(model, state, actions), task.frame_skip, axis=1)
+        for state, actions in batches:
             start = time.perf_counter()
-            runner.rollout(model, [data], state.physics[None], control, control_spec=spec,
-                           nstep=HORIZON * task.frame_skip, initial_warmstart=state.warmstart[None])  # fmt: skip
+            single.simulate(state, actions)
             elapsed += time.perf_counter() - start
-            steps += HORIZON * task.frame_skip
+            steps += actions.shape[0] * actions.shape[1] * task.frame_skip
     finally:
-        runner.close()
+        single.close()
     return steps / elapsed
 
 
-def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> dict[str, Any]:
-    """Run ``steps`` MPC steps of iCEM in-process and return its throughput."""
+def planner_figures(task_name: str, budget: int, steps: int, threads: int, blocks: int = 4) -> dict[str, Any]:
+    """iCEM's planning throughput over ``steps`` MPC steps, and raw MuJoCo's on the same batches.
+
+    The episode is measured in ``blocks`` stretches; after each stretch its
+    batches are re-simulated on one thread, so that slow phases of a shared
+    machine hit both figures alike. The ratio is the median over blocks.
+    """
     task = make_task(task_name)
     config = PlannerConfig(algorithm="icem", budget=budget, horizon=HORIZON).resolved(task.colored_noise_beta)
-    runner = TrialRunner(task_name, config, seed=0, max_steps=steps, threads=threads)
-    report = runner.run_episode(0)
-    runner.evaluator.close()
-    seconds = float(report.planning_seconds.mean())
+    env = task.make_env()
+    env.reset(seed=0)
+    model = task.build_planning_model(env)
+    evaluator = BatchEvaluator(task, model, threads)
+    planner = CEMPlanner(config, task.action_dim, seed=0)
+    planning_seconds, physics_steps, raw_rates, block_ratios = 0.0, 0, [], []
+    per_block = max(1, steps // blocks)
+    try:
+        for block in range(blocks):
+            recorder = RecordingEvaluator(evaluator)
+            block_seconds, block_steps = 0.0, 0
+            for t in range(block * per_block, (block + 1) * per_block):
+                state = task.capture(env, time_step=t)
+                started = time.perf_counter()
+                result = planner.plan(lambda actions: recorder.costs(state, actions))
+                block_seconds += time.perf_counter() - started
+                block_steps += result.trajectories * HORIZON * task.frame_skip
+                task.step_env(env, result.action)
+            raw = raw_physics_rate(task, model, recorder.batches)
+            raw_rates.append(raw)
+            block_ratios.append(block_steps / block_seconds / (raw * threads))
+            planning_seconds += block_seconds
+            physics_steps += block_steps
+    finally:
+        evaluator.close()
+        env.close()
+    planner_rate = physics_steps / planning_seconds
     return {
         "budget": budget,
-        "trajectories_per_step": float(report.trajectories.mean()),
-        "seconds_per_step": seconds,
-        "planner_physics_steps_per_second": report.physics_steps_per_second,
-        "planner_env_steps_per_second": report.simulated_steps_per_second,
+        "trajectories_per_step": config.trajectories_per_step(),
+        "seconds_per_step": planning_seconds / (per_block * blocks),
+        "planner_physics_steps_per_second": planner_rate,
+        "planner_env_steps_per_second": planner_rate / task.frame_skip,
+        "raw_physics_steps_per_second": float(np.median(raw_rates)),
+        "cores_used": threads,
+        "ratio": float(np.median(block_ratios)),
+        "block_ratios": block_ratios,
         "thesis_seconds_per_step_1_thread": PUBLISHED_SECONDS_PER_STEP.get((task_name, 1, budget)),
         "thesis_seconds_per_step_32_threads": PUBLISHED_SECONDS_PER_STEP.get((task_name, 32, budget)),
     }
@@ -92,26 +129,31 @@ def service_figures(steps: int, threads: int) -> dict[str, Any]:
     config = PlannerConfig(algorithm="icem", budget=SERVICE_BUDGET, horizon=HORIZON).resolved(task.colored_noise_beta)
     in_process = TrialRunner(SERVICE_TASK, config, seed=0, max_steps=steps, threads=threads)
     started_ray = connect_ray(None, num_cpus=threads)
+    half = max(1, threads // 2)
     try:
+        # Default layout of `icemlab run`: the trial's runner with a co-located worker.
         runner_actor = ray.remote(num_cpus=threads, max_concurrency=2)(TrialRunner)
         service = runner_actor.remote(SERVICE_TASK, config, 0, SimulationPool(SERVICE_TASK, threads, []), steps)
-        worker_actor = ray.remote(num_cpus=max(1, threads // 2))(_simulation_worker_class())
-        remote_worker = worker_actor.remote(SERVICE_TASK, max(1, threads // 2))
-        split_pool = SimulationPool(SERVICE_TASK, max(1, threads // 2), [remote_worker])
-        split = ray.remote(num_cpus=0, max_concurrency=2)(TrialRunner).remote(SERVICE_TASK, config, 0, split_pool, steps)
-        ray.get([service.pid.remote(), split.pid.remote()])
-        # Alternate the three so that machine noise hits all of them alike.
-        local_s, service_s, split_s = [], [], []
-        for _ in range(3):
+        local_s, service_s = [], []
+        for _ in range(3):  # alternate, so that machine noise hits both alike
             local_s.append(in_process.run_episode(0).planning_seconds.mean())
             service_s.append(ray.get(service.run_episode.remote(0)).planning_seconds.mean())
-            split_s.append(ray.get(split.run_episode.remote(0)).planning_seconds.mean())
         service_memory = ray.get(service.peak_memory_mb.remote())
+        ray.kill(service)  # frees its CPUs for the next layout
+        # Half the threads co-located, half in one remote SimulationWorker actor.
+        worker = ray.remote(num_cpus=half)(_simulation_worker_class()).remote(SERVICE_TASK, half)
+        split_pool = SimulationPool(SERVICE_TASK, half, [worker])
+        split = ray.remote(num_cpus=half, max_concurrency=2)(TrialRunner).remote(SERVICE_TASK, config, 0, split_pool, steps)
+        split_local_s, split_s = [], []
+        for _ in range(3):
+            split_local_s.append(in_process.run_episode(0).planning_seconds.mean())
+            split_s.append(ray.get(split.run_episode.remote(0)).planning_seconds.mean())
     finally:
         in_process.evaluator.close()
         if started_ray:
             ray.shutdown()
-    local, through_service, through_split = (float(np.median(x)) for x in (local_s, service_s, split_s))
+    local, through_service = float(np.median(local_s)), float(np.median(service_s))
+    split_local, through_split = float(np.median(split_local_s)), float(np.median(split_s))
     return {
         "task": SERVICE_TASK,
         "budget": SERVICE_BUDGET,
@@ -121,7 +163,7 @@ def service_figures(steps: int, threads: int) -> dict[str, Any]:
         "ratio": through_service / local,
         "overhead_percent": 100.0 * (through_service / local - 1.0),
         "service_one_remote_worker_seconds_per_step": through_split,
-        "one_remote_worker_ratio": through_split / local,
+        "one_remote_worker_ratio": through_split / split_local,
         "service_runner_peak_memory_mb": service_memory,
     }
 
@@ -137,20 +179,7 @@ def run_benchmark(tasks: list[str], budgets: list[int], steps: int, threads: int
     threads = threads or default_threads()
     results: dict[str, Any] = {"threads": threads, "horizon": HORIZON, "tasks": {}}
     for name in tasks:
-        task = make_task(name)
-        env = task.make_env()
-        env.reset(seed=0)
-        model = task.build_planning_model(env)
-        raw = raw_physics_rate(task, model, task.capture(env))
-        env.close()
-        entries = []
-        for budget in budgets:
-            figures = planner_figures(name, budget, steps, threads)
-            figures["raw_physics_steps_per_second"] = raw
-            figures["cores_used"] = threads
-            figures["ratio"] = figures["planner_physics_steps_per_second"] / (raw * threads)
-            entries.append(figures)
-        results["tasks"][name] = entries
+        results["tasks"][name] = [planner_figures(name, budget, steps, threads) for budget in budgets]
     results["in_process_peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if service:
         results["service"] = service_figures(steps * 3, threads)
@@ -171,8 +200,9 @@ def print_report(results: dict[str, Any]) -> None:
             print(f"{name:22s} {e['budget']:>6d} {e['raw_physics_steps_per_second']:>12,.0f} "
                   f"{e['planner_physics_steps_per_second']:>12,.0f} {e['ratio']:>6.2f} "
                   f"{e['seconds_per_step']:>8.3f} {thesis:>16s}")  # fmt: skip
-    print("\nraw: physics steps/s, one thread; planner: physics steps/s of planning with all threads;")
-    print(f"ratio = planner / (raw x {threads}); s/step: planning seconds per environment step.")
+    print("\nplanner: physics steps/s of planning with all threads; raw: the same batches re-simulated by")
+    print(f"native mj_step loops on one thread; ratio = planner / (raw x {threads}), median over 4 stretches of")
+    print("the episode, each measured back to back; s/step: planning seconds per environment step.")
     print(f"peak memory of the in-process runs: {results['in_process_peak_memory_mb']:.0f} MB")
     if "service" in results:
         s = results["service"]
