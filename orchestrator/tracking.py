@@ -91,7 +91,10 @@ class Tracker:
             # Artifacts beside the database, wherever the command was run from.
             database = Path(self.uri.removeprefix("sqlite:///"))
             artifact_location = (database.parent / "mlruns").resolve().as_uri()
-        return self.client.create_experiment(name, artifact_location=artifact_location)
+        experiment_id = self.client.create_experiment(name, artifact_location=artifact_location)
+        # Show it as a model-training experiment (runs, metrics), not a GenAI one, in MLflow 3's UI.
+        self.client.set_experiment_tag(experiment_id, "mlflow.experimentKind", "custom_model_development")
+        return experiment_id
 
     def find_sweep_run(self, experiment: str, sweep_name: str) -> Any | None:
         """The latest parent run of a sweep, or None."""
