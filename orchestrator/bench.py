@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import resource
 import time
+from functools import partial
 from typing import Any
 
 import mujoco
@@ -90,7 +91,7 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int, block
             for t in range(block * per_block, (block + 1) * per_block):
                 state = task.capture(env, time_step=t)
                 started = time.perf_counter()
-                result = planner.plan(lambda actions: recorder.costs(state, actions))
+                result = planner.plan(partial(recorder.costs, state))
                 block_seconds += time.perf_counter() - started
                 block_steps += result.trajectories * HORIZON * task.frame_skip
                 task.step_env(env, result.action)
@@ -143,7 +144,9 @@ def service_figures(steps: int, threads: int) -> dict[str, Any]:
         # Half the threads co-located, half in one remote SimulationWorker actor.
         worker = ray.remote(num_cpus=half)(_simulation_worker_class()).remote(SERVICE_TASK, half)
         split_pool = SimulationPool(SERVICE_TASK, half, [worker])
-        split = ray.remote(num_cpus=half, max_concurrency=2)(TrialRunner).remote(SERVICE_TASK, config, 0, split_pool, steps)
+        split = ray.remote(num_cpus=half, max_concurrency=2)(TrialRunner).remote(
+            SERVICE_TASK, config, 0, split_pool, steps
+        )
         split_local_s, split_s = [], []
         for _ in range(3):
             split_local_s.append(in_process.run_episode(0).planning_seconds.mean())
@@ -189,7 +192,9 @@ def run_benchmark(tasks: list[str], budgets: list[int], steps: int, threads: int
 def print_report(results: dict[str, Any]) -> None:
     threads = results["threads"]
     print(f"icemlab bench: {threads} thread(s), horizon {results['horizon']}\n")
-    header = f"{'task':22s} {'budget':>6s} {'raw 1-thr':>12s} {'planner':>12s} {'ratio':>6s} {'s/step':>8s} {'thesis 1/32 thr':>16s}"
+    columns = ("budget", "raw 1-thr", "planner", "ratio", "s/step", "thesis 1/32 thr")
+    widths = (6, 12, 12, 6, 8, 16)
+    header = f"{'task':22s} " + " ".join(f"{c:>{w}s}" for c, w in zip(columns, widths))
     print(header)
     print("-" * len(header))
     for name, entries in results["tasks"].items():
@@ -197,9 +202,11 @@ def print_report(results: dict[str, Any]) -> None:
             thesis = "-"
             if e["thesis_seconds_per_step_1_thread"] is not None:
                 thesis = f"{e['thesis_seconds_per_step_1_thread']:.3f}/{e['thesis_seconds_per_step_32_threads']:.3f}"
-            print(f"{name:22s} {e['budget']:>6d} {e['raw_physics_steps_per_second']:>12,.0f} "
-                  f"{e['planner_physics_steps_per_second']:>12,.0f} {e['ratio']:>6.2f} "
-                  f"{e['seconds_per_step']:>8.3f} {thesis:>16s}")  # fmt: skip
+            print(
+                f"{name:22s} {e['budget']:>6d} {e['raw_physics_steps_per_second']:>12,.0f} "
+                f"{e['planner_physics_steps_per_second']:>12,.0f} {e['ratio']:>6.2f} "
+                f"{e['seconds_per_step']:>8.3f} {thesis:>16s}"
+            )
     print("\nplanner: physics steps/s of planning with all threads; raw: the same batches re-simulated by")
     print(f"native mj_step loops on one thread; ratio = planner / (raw x {threads}), median over 4 stretches of")
     print("the episode, each measured back to back; s/step: planning seconds per environment step.")
@@ -208,8 +215,12 @@ def print_report(results: dict[str, Any]) -> None:
         s = results["service"]
         print(f"\nservice vs in-process ({s['task']}, budget {s['budget']}, {s['steps']} steps, median of 3):")
         print(f"  in-process          {s['in_process_seconds_per_step']:.4f} s/step")
-        print(f"  service (default)   {s['service_seconds_per_step']:.4f} s/step   ratio {s['ratio']:.3f} "
-              f"({s['overhead_percent']:+.1f}%)")  # fmt: skip
-        print(f"  one remote worker   {s['service_one_remote_worker_seconds_per_step']:.4f} s/step   "
-              f"ratio {s['one_remote_worker_ratio']:.3f}")  # fmt: skip
+        print(
+            f"  service (default)   {s['service_seconds_per_step']:.4f} s/step   ratio {s['ratio']:.3f} "
+            f"({s['overhead_percent']:+.1f}%)"
+        )
+        print(
+            f"  one remote worker   {s['service_one_remote_worker_seconds_per_step']:.4f} s/step   "
+            f"ratio {s['one_remote_worker_ratio']:.3f}"
+        )
         print(f"  trial actor peak memory {s['service_runner_peak_memory_mb']:.0f} MB")

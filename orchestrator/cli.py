@@ -53,42 +53,57 @@ def build_parser() -> argparse.ArgumentParser:
         help="Ray cluster address, e.g. ray://head:10001 or 10.0.0.1:6379 (default: $RAY_ADDRESS, else a local Ray)",
     )
     _add_tracking(run)
-    run.add_argument("--resume", action="store_true", help="continue the latest run of this sweep: run only missing trials")
+    run.add_argument(
+        "--resume", action="store_true", help="continue the latest run of this sweep: run only missing trials"
+    )
     run.add_argument("--max-concurrent", type=int, default=None, metavar="N", help="at most N trials at a time")
     run.add_argument("--quiet", action="store_true", help="no progress display")
 
     validate = commands.add_parser(
-        "validate", help="check a sweep without running it",
+        "validate",
+        help="check a sweep without running it",
         description="Check a sweep file and every trial it expands to; print one FILE:LINE: path: message "
         "line per problem and exit 2, or the trials and exit 0. Starts nothing.",
-    )  # fmt: skip
+    )
     validate.add_argument("sweep", type=Path)
     validate.add_argument("--quiet", action="store_true", help="print nothing when the sweep is valid")
 
-    status = commands.add_parser("status", help="what ran, what runs, what failed",
-                                 description="Without SWEEP: every sweep in the store. With SWEEP (file or name): its trials.")  # fmt: skip
+    status = commands.add_parser(
+        "status",
+        help="what ran, what runs, what failed",
+        description="Without SWEEP: every sweep in the store. With SWEEP (file or name): its trials.",
+    )
     status.add_argument("sweep", nargs="?", help="sweep file or sweep name")
     _add_tracking(status)
 
-    report_cmd = commands.add_parser("report", help="summary table and plots of a sweep, next to the thesis",
-                                     description="Summarise the latest run of a sweep: mean +- sem per configuration "
-                                     "with the thesis's Table 3 figures, a CSV and a budget plot (Fig. 5 style).")  # fmt: skip
+    report_cmd = commands.add_parser(
+        "report",
+        help="summary table and plots of a sweep, next to the thesis",
+        description="Summarise the latest run of a sweep: mean +- sem per configuration "
+        "with the thesis's Table 3 figures, a CSV and a budget plot (Fig. 5 style).",
+    )
     report_cmd.add_argument("sweep", help="sweep file or sweep name")
-    report_cmd.add_argument("--output", type=Path, default=None, help="directory for summary.csv and plots (default: reports/NAME)")
+    report_cmd.add_argument(
+        "--output", type=Path, default=None, help="directory for summary.csv and plots (default: reports/NAME)"
+    )
     _add_tracking(report_cmd)
 
-    ui = commands.add_parser("ui", help="open the MLflow dashboard on the store",
-                             description="Serve the MLflow UI for the tracking store (default ./mlflow.db) on 127.0.0.1.")  # fmt: skip
+    ui = commands.add_parser(
+        "ui",
+        help="open the MLflow dashboard on the store",
+        description="Serve the MLflow UI for the tracking store (default ./mlflow.db) on 127.0.0.1.",
+    )
     _add_tracking(ui)
     ui.add_argument("--host", default="127.0.0.1")
     ui.add_argument("--port", type=int, default=5000)
 
     bench = commands.add_parser(
-        "bench", help="planner speed vs raw MuJoCo, service vs in-process",
+        "bench",
+        help="planner speed vs raw MuJoCo, service vs in-process",
         description="Measure, in one run: raw single-thread mj_step throughput per task; iCEM planning "
         "throughput at each budget (horizon 30) and its ratio to raw x threads; seconds per environment "
         "step next to the thesis's Table 2; and the service's overhead against in-process planning.",
-    )  # fmt: skip
+    )
     bench.add_argument("--tasks", nargs="+", default=["halfcheetah_running", "humanoid_standup"])
     bench.add_argument("--budgets", nargs="+", type=int, default=[100, 300])
     bench.add_argument("--steps", type=int, default=20, help="MPC steps measured per task and budget")
@@ -97,8 +112,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true", help="print the figures as one JSON document")
 
     commands.add_parser("tasks", help="list the tasks", description="List the tasks a sweep can name.")
-    commands.add_parser("schema", help="print the JSON Schema of sweep files",
-                        description="Print the JSON Schema of sweep files (for editor completion).")  # fmt: skip
+    commands.add_parser(
+        "schema",
+        help="print the JSON Schema of sweep files",
+        description="Print the JSON Schema of sweep files (for editor completion).",
+    )
     return parser
 
 
@@ -133,7 +151,10 @@ def cmd_run(args) -> int:
 
     tracker = Tracker(args.tracking_uri)
     display = None if args.quiet else ProgressDisplay()
-    print(f"icemlab: running {loaded.sweep.name} ({len(loaded.trials)} trials), tracking at {tracker.uri}", file=sys.stderr)
+    print(
+        f"icemlab: running {loaded.sweep.name} ({len(loaded.trials)} trials), tracking at {tracker.uri}",
+        file=sys.stderr,
+    )
     scheduler = SweepScheduler(
         loaded, tracker, address=args.address, resume=args.resume, max_concurrent=args.max_concurrent, display=display
     )
@@ -145,8 +166,11 @@ def cmd_run(args) -> int:
     except KeyboardInterrupt:
         if display:
             display.close()
-        print("icemlab: interrupted; running trials were stopped and marked KILLED. "
-              f"Continue with: icemlab run {args.sweep} --resume", file=sys.stderr)  # fmt: skip
+        print(
+            "icemlab: interrupted; running trials were stopped and marked KILLED. "
+            f"Continue with: icemlab run {args.sweep} --resume",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
     if display:
         display.close()
@@ -181,8 +205,10 @@ def cmd_status(args) -> int:
             children = tracker.trial_runs(run.info.run_id)
             current = [c for c in children if not c.superseded]
             counts = {s: sum(c.status == s for c in current) for s in ("FINISHED", "RUNNING", "FAILED", "KILLED")}
-            print(f"{run.data.tags.get('icemlab.sweep', '?'):24s} {run.info.status:9s} run {run.info.run_id}  "
-                  + "  ".join(f"{k.lower()} {v}" for k, v in counts.items()))  # fmt: skip
+            print(
+                f"{run.data.tags.get('icemlab.sweep', '?'):24s} {run.info.status:9s} run {run.info.run_id}  "
+                + "  ".join(f"{k.lower()} {v}" for k, v in counts.items())
+            )
         return 0
     name, experiment = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name)
@@ -195,8 +221,10 @@ def cmd_status(args) -> int:
             continue
         figure = child.metrics.get("mean_return")
         error = child.tags.get("icemlab.error", "").splitlines()[0:1]
-        print(f"  {child.trial_key}  {child.status:9s} {child.tags.get('mlflow.runName', ''):40s} "
-              f"{'' if figure is None else f'return {figure:.1f}'} {error[0] if error else ''}")  # fmt: skip
+        print(
+            f"  {child.trial_key}  {child.status:9s} {child.tags.get('mlflow.runName', ''):40s} "
+            f"{'' if figure is None else f'return {figure:.1f}'} {error[0] if error else ''}"
+        )
     return 0
 
 
@@ -230,8 +258,20 @@ def cmd_ui(args) -> int:
 
     uri = resolve_tracking_uri(args.tracking_uri)
     env = dict(os.environ, MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false", MLFLOW_DISABLE_TELEMETRY="true")
-    command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
-               "--host", args.host, "--port", str(args.port), "--workers", "1"]  # fmt: skip
+    command = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "ui",
+        "--backend-store-uri",
+        uri,
+        "--host",
+        args.host,
+        "--port",
+        str(args.port),
+        "--workers",
+        "1",
+    ]
     print(f"MLflow dashboard for {uri} at http://{args.host}:{args.port} (Ctrl-C stops it)", file=sys.stderr)
     try:
         return subprocess.call(command, env=env)
@@ -266,9 +306,15 @@ def cmd_schema(args) -> int:
 
 
 COMMANDS = {
-    "run": cmd_run, "validate": cmd_validate, "status": cmd_status, "report": cmd_report,
-    "ui": cmd_ui, "bench": cmd_bench, "tasks": cmd_tasks, "schema": cmd_schema,
-}  # fmt: skip
+    "run": cmd_run,
+    "validate": cmd_validate,
+    "status": cmd_status,
+    "report": cmd_report,
+    "ui": cmd_ui,
+    "bench": cmd_bench,
+    "tasks": cmd_tasks,
+    "schema": cmd_schema,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,8 +21,9 @@ import logging
 import os
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -143,9 +144,13 @@ class SweepScheduler:
                 self.tracker.reopen_sweep(run_id, self.loaded.file_hash)
                 return run_id, self.tracker.trial_runs(run_id)
         run_id = self.tracker.start_sweep(
-            self.experiment, self.sweep.name, self.loaded.file_hash, self.loaded.text,
-            self.sweep.tracking.tags, icemlab_version(),
-        )  # fmt: skip
+            self.experiment,
+            self.sweep.name,
+            self.loaded.file_hash,
+            self.loaded.text,
+            self.sweep.tracking.tags,
+            icemlab_version(),
+        )
         return run_id, []
 
     def _layout(self, cpus: float, pending: int) -> tuple[int, int]:
@@ -251,10 +256,17 @@ class SweepScheduler:
                 steps_done = finished_steps + sum(self._steps_done(a) for a in self._active)
                 rate = steps_done / max(now - started, 1e-9)
                 eta = (total_steps - steps_done) / rate if steps_done > 0 else None
-                self.display(SweepState(
-                    self.sweep.name, len(self.loaded.trials), skipped + done, failed,
-                    [(trial_label(a.trial), a.trial.config.episodes, a.progress) for a in self._active], now - started, eta,
-                ))  # fmt: skip
+                self.display(
+                    SweepState(
+                        self.sweep.name,
+                        len(self.loaded.trials),
+                        skipped + done,
+                        failed,
+                        [(trial_label(a.trial), a.trial.config.episodes, a.progress) for a in self._active],
+                        now - started,
+                        eta,
+                    )
+                )
 
         groups = report.summarize(results)
         table = report.format_table(groups)
@@ -289,12 +301,19 @@ class SweepScheduler:
             self._parent_id,
             trial.key,
             name=f"{trial_label(trial)}#{trial.key[:6]}",
-            params=config.flat() | {"resources.threads_per_worker": threads,
-                                    "resources.simulation_workers": self.sweep.resources.simulation_workers},
-            tags={"task": config.task, "algorithm": config.planner.algorithm, "seed": str(config.seed),
-                  "budget": str(config.planner.budget)},
+            params=config.flat()
+            | {
+                "resources.threads_per_worker": threads,
+                "resources.simulation_workers": self.sweep.resources.simulation_workers,
+            },
+            tags={
+                "task": config.task,
+                "algorithm": config.planner.algorithm,
+                "seed": str(config.seed),
+                "budget": str(config.planner.budget),
+            },
             attempt=attempt,
-        )  # fmt: skip
+        )
         active = ActiveTrial(trial, run_id, attempt, runner, workers)
         active.episode_ref = runner.run_episode.remote(0)
         return active
@@ -351,9 +370,15 @@ class SweepScheduler:
         self.tracker.end_trial(active.run_id, FINISHED, summary)
         config = active.trial.config
         return report.TrialResult(
-            active.trial.key, config.task, config.planner.algorithm, config.planner.budget or 0,
-            config.seed, summary["mean_return"], summary.get("success_rate"), seconds,
-        )  # fmt: skip
+            trial_key=active.trial.key,
+            task=config.task,
+            algorithm=config.planner.algorithm,
+            budget=config.planner.budget or 0,
+            seed=config.seed,
+            episode_return=summary["mean_return"],
+            success=summary.get("success_rate"),
+            seconds_per_step=seconds,
+        )
 
     def _previous_results(self, parent_id: str) -> list[report.TrialResult]:
         """Trials finished before a resume, for the summary."""
@@ -394,9 +419,7 @@ class SweepScheduler:
                 report.close(figure)
                 artifacts.append(Path(directory) / "budget_curve.png")
             summary = {"trials_finished": completed, "trials_failed": failed}
-            self.tracker.end_sweep(
-                parent_id, FINISHED, summary, {"icemlab.failed_trials": str(failed)}, artifacts
-            )
+            self.tracker.end_sweep(parent_id, FINISHED, summary, {"icemlab.failed_trials": str(failed)}, artifacts)
 
     def _abort(self, parent_id: str) -> None:
         """Ctrl-C: the running trials' runs and the sweep's end KILLED, then their actors are stopped."""
@@ -412,13 +435,18 @@ class SweepScheduler:
 
 
 def trial_result_from_run(run: TrialRun) -> report.TrialResult:
-    success = run.metrics.get("success_rate")
+    """A finished child run read back from MLflow, reduced for reports."""
+    budget = run.params.get("planner.budget", "None")
     return report.TrialResult(
-        run.trial_key, run.params.get("task", "?"), run.params.get("planner.algorithm", "?"),
-        int(float(run.params.get("planner.budget", "0") or 0)) if run.params.get("planner.budget") not in (None, "None") else 0,
-        int(run.params.get("seed", "0")), run.metrics.get("mean_return", float("nan")), success,
-        run.metrics.get("mean_planning_seconds_per_step", float("nan")),
-    )  # fmt: skip
+        trial_key=run.trial_key,
+        task=run.params.get("task", "?"),
+        algorithm=run.params.get("planner.algorithm", "?"),
+        budget=0 if budget == "None" else int(budget),
+        seed=int(run.params.get("seed", "0")),
+        episode_return=run.metrics.get("mean_return", float("nan")),
+        success=run.metrics.get("success_rate"),
+        seconds_per_step=run.metrics.get("mean_planning_seconds_per_step", float("nan")),
+    )
 
 
 def _error_text(error: BaseException) -> str:

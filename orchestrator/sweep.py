@@ -14,7 +14,6 @@ import hashlib
 import itertools
 import json
 import math
-import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
@@ -349,10 +348,12 @@ def load_sweep(path: str | Path) -> LoadedSweep:
         sweep = Sweep.model_validate(data)
     except ValidationError as error:
         raise SweepError(sorted(_problems_from(error, file, root), key=lambda p: p.line)) from None
-    planner_input = ((data.get("base") or {}).get("planner") or {})
+    planner_input = (data.get("base") or {}).get("planner") or {}
     if "algorithm" in planner_input and planner_input["algorithm"] != sweep.algorithm:
         line = _node_line(root, ("base", "planner", "algorithm"))
-        raise SweepError([SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level")])
+        raise SweepError(
+            [SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level")]
+        )
     trials = expand(sweep, data, file, root)
     file_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
     return LoadedSweep(sweep, trials, text, path, file_hash)
@@ -382,11 +383,17 @@ def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml
     count = grid_points * samples * len(sweep.seeds)
     if count > sweep.max_trials:
         line = _node_line(root, ("parameters",))
-        raise SweepError([SweepProblem(
-            file, line, "parameters",
-            f"the sweep expands to {count} trials, above max_trials = {sweep.max_trials}; "
-            "shrink the grid or raise max_trials",
-        )])  # fmt: skip
+        raise SweepError(
+            [
+                SweepProblem(
+                    file,
+                    line,
+                    "parameters",
+                    f"the sweep expands to {count} trials, above max_trials = {sweep.max_trials}; "
+                    "shrink the grid or raise max_trials",
+                )
+            ]
+        )
 
     base_planner = dict((data.get("base") or {}).get("planner") or {})
     base_planner["algorithm"] = sweep.algorithm
@@ -426,8 +433,10 @@ def _resolve_trial(config, overrides, file, root, problems) -> TrialConfig | Non
     def blame(path: str) -> int:
         """The line of the parameter that set ``path``, else of the base key."""
         for parameter in overrides:
-            if path == parameter or path.startswith(parameter + ".") or (
-                parameter == "algorithm" and path == "planner.algorithm"
+            if (
+                path == parameter
+                or path.startswith(parameter + ".")
+                or (parameter == "algorithm" and path == "planner.algorithm")
             ):
                 return _node_line(root, ("parameters", parameter))
         return _node_line(root, ("base", *path.split(".")))
@@ -461,7 +470,3 @@ def sweep_json_schema() -> dict[str, Any]:
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["title"] = "icemlab sweep"
     return schema
-
-
-def sanitize_experiment_name(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.\-]", "-", name)

@@ -15,18 +15,17 @@ so each trial ends with exactly one current run.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable, NamedTuple
+from typing import Any, NamedTuple
 
 # Keep MLflow quiet and local: no telemetry, no background job runner.
 os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
 os.environ.setdefault("DO_NOT_TRACK", "true")
 
-import logging  # noqa: E402
-
-import mlflow  # noqa: E402
 from mlflow.entities import Metric, Param, RunStatus, RunTag  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
 
@@ -109,16 +108,22 @@ class Tracker:
         )
         return runs[0] if runs else None
 
-    def start_sweep(self, experiment: str, sweep_name: str, file_hash: str, yaml_text: str,
-                    tags: dict[str, str], version: str) -> str:  # fmt: skip
+    def start_sweep(
+        self, experiment: str, sweep_name: str, file_hash: str, yaml_text: str, tags: dict[str, str], version: str
+    ) -> str:
         """Create the parent run of a sweep execution; returns its id."""
         experiment_id = self.experiment_id(experiment)
         run = self.client.create_run(
             experiment_id,
             run_name=f"{sweep_name}",
-            tags={TAG_KIND: "sweep", TAG_SWEEP: sweep_name, TAG_SWEEP_HASH: file_hash,
-                  "icemlab.version": version, **tags},
-        )  # fmt: skip
+            tags={
+                TAG_KIND: "sweep",
+                TAG_SWEEP: sweep_name,
+                TAG_SWEEP_HASH: file_hash,
+                "icemlab.version": version,
+                **tags,
+            },
+        )
         self.client.log_text(run.info.run_id, yaml_text, "sweep.yaml")
         return run.info.run_id
 
@@ -127,8 +132,9 @@ class Tracker:
         self.client.update_run(run_id, status="RUNNING")
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)
 
-    def end_sweep(self, run_id: str, status: str, summary: dict[str, float], tags: dict[str, str],
-                  artifacts: Iterable[Path] = ()) -> None:  # fmt: skip
+    def end_sweep(
+        self, run_id: str, status: str, summary: dict[str, float], tags: dict[str, str], artifacts: Iterable[Path] = ()
+    ) -> None:
         now = _now_ms()
         self.client.log_batch(
             run_id,
@@ -161,15 +167,21 @@ class Tracker:
             for run in runs
         ]
 
-    def start_trial(self, parent_run_id: str, trial_key: str, name: str, params: dict[str, Any],
-                    tags: dict[str, str], attempt: int) -> str:  # fmt: skip
+    def start_trial(
+        self, parent_run_id: str, trial_key: str, name: str, params: dict[str, Any], tags: dict[str, str], attempt: int
+    ) -> str:
         parent = self.client.get_run(parent_run_id)
         run = self.client.create_run(
             parent.info.experiment_id,
             run_name=name,
-            tags={TAG_PARENT: parent_run_id, TAG_KIND: "trial", TAG_TRIAL_KEY: trial_key,
-                  TAG_ATTEMPT: str(attempt), **tags},
-        )  # fmt: skip
+            tags={
+                TAG_PARENT: parent_run_id,
+                TAG_KIND: "trial",
+                TAG_TRIAL_KEY: trial_key,
+                TAG_ATTEMPT: str(attempt),
+                **tags,
+            },
+        )
         self.client.log_batch(run.info.run_id, params=[Param(k, _param(v)) for k, v in params.items()])
         return run.info.run_id
 
@@ -179,8 +191,14 @@ class Tracker:
         if self.client.get_run(run_id).info.status in ("RUNNING", "SCHEDULED"):
             self.client.set_terminated(run_id, status=status)
 
-    def log_episode(self, run_id: str, episode: int, step_offset: int,
-                    per_step: dict[str, Iterable[float]], per_episode: dict[str, float]) -> None:  # fmt: skip
+    def log_episode(
+        self,
+        run_id: str,
+        episode: int,
+        step_offset: int,
+        per_step: dict[str, Iterable[float]],
+        per_episode: dict[str, float],
+    ) -> None:
         """Log one episode: per-step series (steps counted across episodes) and per-episode figures."""
         now = _now_ms()
         metrics = [
@@ -198,8 +216,9 @@ class Tracker:
     def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
         self.client.log_text(run_id, text, artifact_file)
 
-    def end_trial(self, run_id: str, status: str, summary: dict[str, float] | None = None,
-                  error: str | None = None) -> None:  # fmt: skip
+    def end_trial(
+        self, run_id: str, status: str, summary: dict[str, float] | None = None, error: str | None = None
+    ) -> None:
         """Close a trial run: FINISHED with summary metrics, or FAILED / KILLED with the error."""
         if summary:
             now = _now_ms()
@@ -238,4 +257,4 @@ FINISHED = RunStatus.to_string(RunStatus.FINISHED)
 FAILED = RunStatus.to_string(RunStatus.FAILED)
 KILLED = RunStatus.to_string(RunStatus.KILLED)
 RUNNING = RunStatus.to_string(RunStatus.RUNNING)
-__all__ = ["FAILED", "FINISHED", "KILLED", "RUNNING", "Tracker", "TrialRun", "mlflow", "resolve_tracking_uri"]
+__all__ = ["FAILED", "FINISHED", "KILLED", "RUNNING", "Tracker", "TrialRun", "resolve_tracking_uri"]

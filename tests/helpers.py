@@ -7,8 +7,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 
@@ -32,17 +33,25 @@ def cli(*args: str, cwd: Path, timeout: float = 300, env: dict | None = None) ->
     """Run ``icemlab ARGS`` to completion in ``cwd``."""
     return subprocess.run(
         [sys.executable, "-m", "orchestrator.cli", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=timeout, env=_env(env),
-    )  # fmt: skip
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=_env(env),
+    )
 
 
 def start_cli(*args: str, cwd: Path, env: dict | None = None) -> subprocess.Popen:
     """Start ``icemlab ARGS`` in its own process group (as a terminal would run it)."""
     return subprocess.Popen(
         [sys.executable, "-m", "orchestrator.cli", *args],
-        cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True, env=_env(env),
-    )  # fmt: skip
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        env=_env(env),
+    )
 
 
 def kill_group(process: subprocess.Popen) -> None:

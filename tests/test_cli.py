@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 from helpers import cli, write_sweep
+
 from orchestrator.cli import main
 from orchestrator.sweep import SweepError, load_sweep, sweep_json_schema
 
@@ -37,19 +38,56 @@ BAD_SWEEPS = {
     "yaml_syntax": ("name: x\ntask: point_reach\nbase:\n  planner: {budget: 100\n", (5, "(yaml)"), "YAML syntax error"),
     "empty": ("", (1, "(file)"), "empty sweep file"),
     "not_a_mapping": ("- just\n- a list\n", (1, "(file)"), "mapping"),
-    "unknown_key": ("name: x\ntask: point_reach\nbase:\n  planner:\n    budgte: 100\n", (5, "base.planner.budgte"), "did you mean 'budget'"),
+    "unknown_key": (
+        "name: x\ntask: point_reach\nbase:\n  planner:\n    budgte: 100\n",
+        (5, "base.planner.budgte"),
+        "did you mean 'budget'",
+    ),
     "unknown_top_key": ("name: x\ntask: point_reach\nseed: [1]\n", (3, "seed"), "did you mean 'seeds'"),
-    "wrong_type": ("name: x\ntask: point_reach\nbase:\n  planner:\n    budget: lots\n", (5, "base.planner.budget"), "integer"),
-    "budget_below_2k": ("name: x\ntask: point_reach\nbase:\n  planner:\n    budget: 15\n", (5, "base.planner.budget"), "below 2K"),
+    "wrong_type": (
+        "name: x\ntask: point_reach\nbase:\n  planner:\n    budget: lots\n",
+        (5, "base.planner.budget"),
+        "integer",
+    ),
+    "budget_below_2k": (
+        "name: x\ntask: point_reach\nbase:\n  planner:\n    budget: 15\n",
+        (5, "base.planner.budget"),
+        "below 2K",
+    ),
     "negative_seed": ("name: x\ntask: point_reach\nseeds: [0, -3]\n", (3, "seeds"), ">= 0"),
-    "beta_out_of_range": ("name: x\ntask: point_reach\nbase:\n  planner:\n    noise_beta: 6\n", (5, "base.planner.noise_beta"), "less than or equal to 5"),
-    "horizon_zero": ("name: x\ntask: point_reach\nbase:\n  planner:\n    horizon: 0\n", (5, "base.planner.horizon"), "greater than or equal to 1"),
+    "beta_out_of_range": (
+        "name: x\ntask: point_reach\nbase:\n  planner:\n    noise_beta: 6\n",
+        (5, "base.planner.noise_beta"),
+        "less than or equal to 5",
+    ),
+    "horizon_zero": (
+        "name: x\ntask: point_reach\nbase:\n  planner:\n    horizon: 0\n",
+        (5, "base.planner.horizon"),
+        "greater than or equal to 1",
+    ),
     "unknown_task": ("name: x\ntask: halfcheetah_runing\n", (2, "task"), "did you mean 'halfcheetah_running'"),
-    "swept_unknown_task": ("name: x\ntask: point_reach\nparameters:\n  task:\n    values: [point_reach, door_spars]\n", (4, "task"), "did you mean 'door_sparse'"),
-    "swept_bad_budget": ("name: x\ntask: point_reach\nparameters:\n  planner.budget:\n    values: [5, 100]\n", (4, "planner.budget"), "below 2K"),
-    "unknown_parameter_path": ("name: x\ntask: point_reach\nparameters:\n  planner.sigma:\n    values: [0.3]\n", (4, "parameters.planner.sigma"), "did you mean 'planner.sigma_init'"),
-    "too_many_trials": ("name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n", (4, "parameters"), "above max_trials = 5"),
-}  # fmt: skip
+    "swept_unknown_task": (
+        "name: x\ntask: point_reach\nparameters:\n  task:\n    values: [point_reach, door_spars]\n",
+        (4, "task"),
+        "did you mean 'door_sparse'",
+    ),
+    "swept_bad_budget": (
+        "name: x\ntask: point_reach\nparameters:\n  planner.budget:\n    values: [5, 100]\n",
+        (4, "planner.budget"),
+        "below 2K",
+    ),
+    "unknown_parameter_path": (
+        "name: x\ntask: point_reach\nparameters:\n  planner.sigma:\n    values: [0.3]\n",
+        (4, "parameters.planner.sigma"),
+        "did you mean 'planner.sigma_init'",
+    ),
+    "too_many_trials": (
+        "name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n"
+        "  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n",
+        (4, "parameters"),
+        "above max_trials = 5",
+    ),
+}
 
 
 @pytest.mark.parametrize("case", sorted(BAD_SWEEPS))
@@ -113,7 +151,9 @@ def test_quickstart_has_at_least_four_trials():
 
 def test_committed_schema_is_current():
     committed = json.loads((ROOT / "sweeps" / "sweep.schema.json").read_text())
-    assert committed == json.loads(json.dumps(sweep_json_schema()))
+    assert committed == json.loads(json.dumps(sweep_json_schema())), (
+        "sweeps/sweep.schema.json is stale: icemlab schema > sweeps/sweep.schema.json"
+    )
 
 
 def test_schema_describes_every_field():
@@ -131,7 +171,9 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
 
 
 def test_random_parameters_are_repeatable(tmp_path):
-    fields = dict(parameters={"planner.sigma_init": {"distribution": "uniform", "low": 0.2, "high": 0.8}}, num_samples=3)
+    fields = dict(
+        parameters={"planner.sigma_init": {"distribution": "uniform", "low": 0.2, "high": 0.8}}, num_samples=3
+    )
     first = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
     second = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
     assert first == second and len(set(first)) == 3 and all(0.2 <= s <= 0.8 for s in first)

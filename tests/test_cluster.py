@@ -21,7 +21,6 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-
 from helpers import cli, wait_for, write_sweep
 
 pytestmark = pytest.mark.cluster
@@ -41,9 +40,12 @@ def free_port() -> int:
 def start(command: list[str], log: Path, env: dict | None = None) -> subprocess.Popen:
     """A long-running process in its own process group, output to ``log``."""
     return subprocess.Popen(
-        command, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True,
+        command,
+        stdout=log.open("w"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
         env=dict(os.environ, RAY_USAGE_STATS_ENABLED="0", **(env or {})),
-    )  # fmt: skip
+    )
 
 
 def stop(process: subprocess.Popen) -> None:
@@ -60,13 +62,15 @@ def stop(process: subprocess.Popen) -> None:
             continue
 
 
-def alive_nodes(address: str) -> int:
+def alive_nodes(address: str) -> tuple[int, int]:
+    """(alive nodes, CPUs) of the cluster at ``address``, asked from a fresh driver."""
     probe = (
-        "import ray; ray.init(address=%r, logging_level='ERROR'); "
-        "print(sum(n['Alive'] for n in ray.nodes()), int(ray.cluster_resources().get('CPU', 0)))" % address
+        f"import ray; ray.init(address={address!r}, logging_level='ERROR'); "
+        "print(sum(n['Alive'] for n in ray.nodes()), int(ray.cluster_resources().get('CPU', 0)))"
     )
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60,
-                         env=dict(os.environ, **AUTH)).stdout.split()  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, env=dict(os.environ, **AUTH)
+    ).stdout.split()
     return (int(out[-2]), int(out[-1])) if len(out) >= 2 else (0, 0)
 
 
@@ -76,13 +80,29 @@ def cluster(tmp_path):
     port = free_port()
     address = f"127.0.0.1:{port}"
     common = ["--num-cpus=1", "--disable-usage-stats", "--block"]
-    head = start([str(VENV_BIN / "ray"), "start", "--head", "--node-ip-address=127.0.0.1", f"--port={port}",
-                  f"--temp-dir={temp_dir}", "--include-dashboard=false", *common], tmp_path / "head.log")  # fmt: skip
+    head = start(
+        [
+            str(VENV_BIN / "ray"),
+            "start",
+            "--head",
+            "--node-ip-address=127.0.0.1",
+            f"--port={port}",
+            f"--temp-dir={temp_dir}",
+            "--include-dashboard=false",
+            *common,
+        ],
+        tmp_path / "head.log",
+    )
     nodes = [head]
     try:
         wait_for(lambda: alive_nodes(address)[0] >= 1, timeout=120, interval=2, what="the head node")
-        nodes.append(start([str(VENV_BIN / "ray"), "start", f"--address={address}", "--node-ip-address=127.0.0.1",
-                            *common], tmp_path / "worker.log", env=AUTH))  # fmt: skip
+        nodes.append(
+            start(
+                [str(VENV_BIN / "ray"), "start", f"--address={address}", "--node-ip-address=127.0.0.1", *common],
+                tmp_path / "worker.log",
+                env=AUTH,
+            )
+        )
         wait_for(lambda: alive_nodes(address) == (2, 2), timeout=120, interval=2, what="two nodes with 2 CPUs")
         yield address
     finally:
@@ -95,14 +115,31 @@ def cluster(tmp_path):
 def mlflow_server(tmp_path):
     port = free_port()
     server = start(
-        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
-         "--artifacts-destination", str(tmp_path / "server-artifacts"), "--serve-artifacts",
-         "--host", "127.0.0.1", "--port", str(port), "--workers", "1"],
-        tmp_path / "mlflow.log", env={"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", "MLFLOW_DISABLE_TELEMETRY": "true"},
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "server",
+            "--backend-store-uri",
+            f"sqlite:///{tmp_path / 'server.db'}",
+            "--artifacts-destination",
+            str(tmp_path / "server-artifacts"),
+            "--serve-artifacts",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
+        ],
+        tmp_path / "mlflow.log",
+        env={"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", "MLFLOW_DISABLE_TELEMETRY": "true"},
+    )
     url = f"http://127.0.0.1:{port}"
     try:
-        wait_for(lambda: urllib.request.urlopen(f"{url}/health", timeout=2).status == 200, timeout=120, what="mlflow server")
+        wait_for(
+            lambda: urllib.request.urlopen(f"{url}/health", timeout=2).status == 200, timeout=120, what="mlflow server"
+        )
         yield url
     finally:
         stop(server)
@@ -110,12 +147,15 @@ def mlflow_server(tmp_path):
 
 def test_sweep_on_two_node_cluster_with_mlflow_server(tmp_path, cluster, mlflow_server):
     sweep = write_sweep(
-        tmp_path, "two_nodes", seeds=[0, 1],
+        tmp_path,
+        "two_nodes",
+        seeds=[0, 1],
         resources={"simulation_workers": 2, "threads_per_worker": 1},
-    )  # fmt: skip
+    )
     started = time.monotonic()
-    result = cli("run", str(sweep), "--address", cluster, "--tracking-uri", mlflow_server, "--quiet",
-                 cwd=tmp_path, env=AUTH)  # fmt: skip
+    result = cli(
+        "run", str(sweep), "--address", cluster, "--tracking-uri", mlflow_server, "--quiet", cwd=tmp_path, env=AUTH
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert not (tmp_path / "mlflow.db").exists()  # everything went to the server
 

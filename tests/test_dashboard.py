@@ -17,8 +17,8 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-
 from helpers import cli, kill_group, start_cli, sweep_runs, wait_for, write_sweep
+
 from orchestrator.tracking import default_tracking_uri
 
 pytestmark = pytest.mark.browser
@@ -26,16 +26,27 @@ pytestmark = pytest.mark.browser
 ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 # Without a virtual-time budget headless Chromium captures MLflow's loading skeleton.
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-         "--disable-sync", "--no-first-run", "--disable-quic", "--window-size=1400,1000", "--virtual-time-budget=20000"]  # fmt: skip
+FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+    "--window-size=1400,1000",
+    "--virtual-time-budget=20000",
+]
 
 
 def browse(url: str, *extra: str) -> str:
     """Render ``url`` in headless Chromium; return the visible text of the page (or take a screenshot)."""
     action = extra or ("--dump-dom",)
     with tempfile.TemporaryDirectory() as profile:
-        result = subprocess.run([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", *action, url],
-                                capture_output=True, text=True, timeout=120)  # fmt: skip
+        result = subprocess.run(
+            [CHROMIUM, *FLAGS, f"--user-data-dir={profile}", *action, url], capture_output=True, text=True, timeout=120
+        )
     page = re.sub(r"<style.*?</style>|<script.*?</script>", " ", result.stdout, flags=re.S)
     return html.unescape(re.sub(r"\s+", " ", re.sub(r"<[^>]+>", " ", page)))
 
@@ -50,8 +61,9 @@ def test_dashboard_shows_the_sweep_runs_and_metrics(tmp_path):
     server = start_cli("ui", "--port", str(port), cwd=tmp_path)
     base = f"http://127.0.0.1:{port}"
     try:
-        wait_for(lambda: urllib.request.urlopen(f"{base}/health", timeout=2).status == 200, timeout=90,
-                 what="the MLflow UI")  # fmt: skip
+        wait_for(
+            lambda: urllib.request.urlopen(f"{base}/health", timeout=2).status == 200, timeout=90, what="the MLflow UI"
+        )
         experiment = parent.info.experiment_id
         parent_url = f"{base}/#/experiments/{experiment}/runs/{parent.info.run_id}"
         page = browse(parent_url)

@@ -168,7 +168,9 @@ def test_add_mean_evaluates_the_mean_in_the_last_iteration_only(monkeypatch):
     planner = make("icem", shift_elites=False, keep_elites=False)
     means = []
     sample = planner._sample
-    monkeypatch.setattr(planner, "_sample", lambda mean, std, count: means.append(mean.copy()) or sample(mean, std, count))
+    monkeypatch.setattr(
+        planner, "_sample", lambda mean, std, count: means.append(mean.copy()) or sample(mean, std, count)
+    )
     recorder = Recorder()
     planner.plan(recorder)
     np.testing.assert_array_equal(recorder.batches[-1][0], means[-1])

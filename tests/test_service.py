@@ -17,12 +17,12 @@ import signal
 import threading
 import time
 
+import faulty
 import numpy as np
 import pytest
 import ray
-
-import faulty
 from helpers import cli, kill_group, start_cli, sweep_runs, wait_for, write_sweep
+
 from orchestrator.scheduler import SweepScheduler
 from orchestrator.sweep import load_sweep
 from orchestrator.tracking import FAILED, FINISHED, KILLED, RUNNING, Tracker, default_tracking_uri
@@ -89,10 +89,12 @@ def test_failing_trial_is_marked_failed_and_the_sweep_goes_on(tmp_path, local_ra
 def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_path, local_ray):
     """SIGKILL the remote SimulationWorker mid-episode; the result equals an undisturbed run."""
     sweep = write_sweep(
-        tmp_path, "worker_kill", task="halfcheetah_running",
+        tmp_path,
+        "worker_kill",
+        task="halfcheetah_running",
         base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 30},
         resources={"simulation_workers": 2, "threads_per_worker": 1},
-    )  # fmt: skip
+    )
     loaded = load_sweep(sweep)
     tracker = Tracker(default_tracking_uri(tmp_path))
     scheduler = SweepScheduler(loaded, tracker)
@@ -127,10 +129,13 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
 
 
 def test_driver_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
-    sweep = write_sweep(tmp_path, "crash", seeds=[0, 1, 2, 3], base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 15})
+    sweep = write_sweep(
+        tmp_path, "crash", seeds=[0, 1, 2, 3], base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 15}
+    )
     uri = default_tracking_uri(tmp_path)
     driver = start_cli("run", str(sweep), "--max-concurrent", "1", "--quiet", cwd=tmp_path)
     try:
+
         def one_finished_one_running():
             _, children = sweep_runs(uri, "crash")
             statuses = [c.status for c in children]
@@ -165,12 +170,17 @@ def test_driver_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
 
 
 def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
-    sweep = write_sweep(tmp_path, "interrupt", seeds=[0, 1, 2], base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 200})
+    sweep = write_sweep(
+        tmp_path, "interrupt", seeds=[0, 1, 2], base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 200}
+    )
     uri = default_tracking_uri(tmp_path)
     driver = start_cli("run", str(sweep), "--max-concurrent", "1", cwd=tmp_path)
     try:
-        wait_for(lambda: any(c.status == RUNNING for c in sweep_runs(uri, "interrupt")[1]) or driver.poll() is not None,
-                 timeout=180, what="a running trial")  # fmt: skip
+        wait_for(
+            lambda: any(c.status == RUNNING for c in sweep_runs(uri, "interrupt")[1]) or driver.poll() is not None,
+            timeout=180,
+            what="a running trial",
+        )
         assert driver.poll() is None, driver.stdout.read()
         time.sleep(1.0)
         os.killpg(driver.pid, signal.SIGINT)  # what a terminal sends on Ctrl-C

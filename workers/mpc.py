@@ -10,7 +10,9 @@ first action is executed in the real environment.
 from __future__ import annotations
 
 import time
-from typing import Callable, NamedTuple, Protocol
+from collections.abc import Callable
+from functools import partial
+from typing import NamedTuple, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -88,7 +90,7 @@ def run_episode(
     for t in range(steps):
         state = task.capture(env, time_step=t)
         started = time.perf_counter()
-        result = planner.plan(lambda actions: evaluator.costs(state, actions))
+        result = planner.plan(partial(evaluator.costs, state))
         seconds = time.perf_counter() - started
         outcome = task.step_env(env, result.action)
         if outcome.goal_achieved is not None:

@@ -19,13 +19,33 @@ BoundHandling = Literal["clip", "truncate", "truncate_2sigma"]
 
 # Table 4: budget (trajectories per environment step) -> (CEM-iterations, initial population N).
 ICEM_BUDGETS: dict[int, tuple[int, int]] = {
-    50: (2, 25), 70: (2, 40), 100: (3, 40), 150: (3, 60), 200: (4, 65), 250: (4, 85),
-    300: (4, 100), 400: (5, 120), 500: (5, 150), 1000: (6, 270), 2000: (8, 480), 4000: (10, 900),
-}  # fmt: skip
+    50: (2, 25),
+    70: (2, 40),
+    100: (3, 40),
+    150: (3, 60),
+    200: (4, 65),
+    250: (4, 85),
+    300: (4, 100),
+    400: (5, 120),
+    500: (5, 150),
+    1000: (6, 270),
+    2000: (8, 480),
+    4000: (10, 900),
+}
 CEM_BUDGETS: dict[int, tuple[int, int]] = {
-    50: (2, 25), 70: (2, 35), 100: (2, 50), 150: (2, 75), 200: (3, 66), 250: (3, 83),
-    300: (3, 100), 400: (4, 100), 500: (4, 125), 1000: (4, 250), 2000: (6, 333), 4000: (8, 500),
-}  # fmt: skip
+    50: (2, 25),
+    70: (2, 35),
+    100: (2, 50),
+    150: (2, 75),
+    200: (3, 66),
+    250: (3, 83),
+    300: (3, 100),
+    400: (4, 100),
+    500: (4, 125),
+    1000: (4, 250),
+    2000: (6, 333),
+    4000: (8, 500),
+}
 
 # Switch defaults per algorithm. iCEM: section 3.2 and Table 5. CEM_MPC: shift-
 # initialised mean (eq. 32-33), momentum, truncation at the action bounds
@@ -35,23 +55,57 @@ CEM_BUDGETS: dict[int, tuple[int, int]] = {
 # leaves its bound handling open and we truncate at the bounds like CEM_MPC.
 PRESETS: dict[str, dict[str, Any]] = {
     "icem": dict(
-        momentum=0.1, population_decay=1.25, elite_fraction=0.3, keep_elites=True, shift_elites=True,
-        shift_mean=True, shift_last="repeat", best_action=True, add_mean=True, bounds="clip",
+        momentum=0.1,
+        population_decay=1.25,
+        elite_fraction=0.3,
+        keep_elites=True,
+        shift_elites=True,
+        shift_mean=True,
+        shift_last="repeat",
+        best_action=True,
+        add_mean=True,
+        bounds="clip",
     ),
     "cem_mpc": dict(
-        momentum=0.1, population_decay=1.0, elite_fraction=0.0, keep_elites=False, shift_elites=False,
-        shift_mean=True, shift_last="repeat", best_action=False, add_mean=False, bounds="truncate", noise_beta=0.0,
+        momentum=0.1,
+        population_decay=1.0,
+        elite_fraction=0.0,
+        keep_elites=False,
+        shift_elites=False,
+        shift_mean=True,
+        shift_last="repeat",
+        best_action=False,
+        add_mean=False,
+        bounds="truncate",
+        noise_beta=0.0,
     ),
     "cem_pets": dict(
-        momentum=0.1, population_decay=1.0, elite_fraction=0.0, keep_elites=False, shift_elites=False,
-        shift_mean=True, shift_last="zero", best_action=False, add_mean=False, bounds="truncate_2sigma",
+        momentum=0.1,
+        population_decay=1.0,
+        elite_fraction=0.0,
+        keep_elites=False,
+        shift_elites=False,
+        shift_mean=True,
+        shift_last="zero",
+        best_action=False,
+        add_mean=False,
+        bounds="truncate_2sigma",
         noise_beta=0.0,
     ),
     "cem": dict(
-        momentum=0.0, population_decay=1.0, elite_fraction=0.0, keep_elites=False, shift_elites=False,
-        shift_mean=False, shift_last="repeat", best_action=False, add_mean=False, bounds="truncate", noise_beta=0.0,
+        momentum=0.0,
+        population_decay=1.0,
+        elite_fraction=0.0,
+        keep_elites=False,
+        shift_elites=False,
+        shift_mean=False,
+        shift_last="repeat",
+        best_action=False,
+        add_mean=False,
+        bounds="truncate",
+        noise_beta=0.0,
     ),
-}  # fmt: skip
+}
 
 SWITCHES = tuple(PRESETS["icem"])
 
@@ -66,7 +120,7 @@ class PlannerConfig(BaseModel):
     elites: int = Field(10, ge=1)
     """Size K of the elite-set (Table 5)."""
     bounds: BoundHandling | None = None
-    """Action bounds: clip samples (iCEM), truncate at the bounds (CEM_MPC) or at 2 sigma with capped sigma (CEM_PETS)."""
+    """Action bounds: clip (iCEM), truncate at the bounds (CEM_MPC), or at 2 sigma with sigma capped (CEM_PETS)."""
     budget: int | None = Field(100, ge=1)
     """Trajectories evaluated per environment step; sets iterations and population by Table 4. Must be >= 2 * elites."""
     iterations: int | None = Field(None, ge=1)
@@ -88,7 +142,7 @@ class PlannerConfig(BaseModel):
     keep_elites: bool | None = None
     """Add the best zeta K elites of an iteration to the next iteration's samples (section 3.2.2)."""
     shift_elites: bool | None = None
-    """Shift the best zeta K final elites one step in time, append a random action, add them to the next step's first iteration."""
+    """Reuse the best zeta K final elites at the next step: shifted by one step, a random action appended."""
     shift_mean: bool | None = None
     """Initialise the mean from the previous step's mean shifted by one step (eq. 32); otherwise from zero."""
     shift_last: Literal["repeat", "zero"] | None = None

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import gymnasium as gym
-import mujoco
 import numpy as np
 
-from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome
+from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, StepOutcome
 
 GRIPPER_BODY = "robot0:gripper_link"
 """Body welded to the mocap target that the arm follows."""

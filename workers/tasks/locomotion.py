@@ -38,9 +38,7 @@ class HalfCheetahRunning(GroundTruthTask):
 
     def rewards(self, model: mujoco.MjModel, batch: RolloutBatch) -> np.ndarray:
         x_after = batch.states[..., 1]  # qpos[0] is the root x position
-        x_before = np.concatenate(
-            [np.broadcast_to(batch.start[1], x_after[:, :1].shape), x_after[:, :-1]], axis=1
-        )
+        x_before = np.concatenate([np.broadcast_to(batch.start[1], x_after[:, :1].shape), x_after[:, :-1]], axis=1)
         dt = model.opt.timestep * self.frame_skip
         forward = (x_after - x_before) / dt
         return forward - self.ctrl_cost_weight * np.sum(np.square(batch.actions), axis=-1)
