@@ -150,6 +150,14 @@ def cmd_run(args) -> int:
     from orchestrator.tracking import Tracker
 
     tracker = Tracker(args.tracking_uri)
+    experiment = loaded.sweep.tracking.experiment or loaded.sweep.name
+    previous = None if args.resume else tracker.find_sweep_run(experiment, loaded.sweep.name)
+    if previous is not None and previous.info.status in ("RUNNING", "KILLED"):
+        print(
+            f"icemlab: note: the last run of {loaded.sweep.name} ({previous.info.run_id}) did not finish; "
+            "this starts a new one. `--resume` would continue it instead.",
+            file=sys.stderr,
+        )
     display = None if args.quiet else ProgressDisplay()
     print(
         f"icemlab: running {loaded.sweep.name} ({len(loaded.trials)} trials), tracking at {tracker.uri}",

@@ -44,7 +44,12 @@ def current(children):
 
 
 def test_cli_sweep_lands_in_mlflow(tmp_path):
-    sweep = write_sweep(tmp_path, "landing", parameters={"algorithm": {"values": ["icem", "cem_mpc"]}})
+    sweep = write_sweep(
+        tmp_path,
+        "landing",
+        base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 8, "episodes": 2},
+        parameters={"algorithm": {"values": ["icem", "cem_mpc"]}},
+    )
     result = cli("run", str(sweep), "--quiet", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "point_reach" in result.stdout  # the summary table
@@ -61,11 +66,14 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
         assert np.isfinite(child.metrics["episode_return"]) and child.metrics["simulated_steps_per_second"] > 0
     tracker = Tracker(default_tracking_uri(tmp_path))
     steps = tracker.metric_history(children[0].run_id, "step/reward")
-    assert [s for s, _ in steps] == list(range(8))  # max_steps 8, one value per environment step
+    assert sorted(s for s, _ in steps) == list(range(16))  # 2 episodes x 8 steps, counted across episodes
+    episodes = tracker.metric_history(children[0].run_id, "episode_return")
+    assert sorted(s for s, _ in episodes) == [0, 1]
+    assert children[0].metrics["mean_return"] == pytest.approx(np.mean([v for _, v in episodes]))
     parent_files = {f.path for f in tracker.client.list_artifacts(parent.info.run_id)}
     assert {"sweep.yaml", "summary.csv", "summary.txt", "budget_curve.png"} <= parent_files
     episode_files = {f.path for f in tracker.client.list_artifacts(children[0].run_id, "episodes")}
-    assert episode_files == {"episodes/episode_000.png"}
+    assert episode_files == {"episodes/episode_000.png", "episodes/episode_001.png"}
 
 
 def test_failing_trial_is_marked_failed_and_the_sweep_goes_on(tmp_path, local_ray):
