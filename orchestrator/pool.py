@@ -69,7 +69,7 @@ class SimulationPool:
         if local_chunk is not None and len(local_chunk):
             self.prepare()
             parts.append(self._local.costs(state, local_chunk)[0])
-        answers = ray.get([ref for _, ref in calls])
+        answers = ray.get([ref for _, ref in calls]) if calls else []
         for (i, _), (_, incarnation) in zip(calls, answers):
             if self._incarnations[i] is not None and incarnation != self._incarnations[i]:
                 self.restarts += 1

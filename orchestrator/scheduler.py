@@ -341,6 +341,7 @@ class SweepScheduler:
         }
         if episode.success is not None:
             per_episode["success"] = float(episode.success)
+            per_episode["goal_steps"] = float(episode.goal_steps)
         per_step = {
             "step/reward": episode.rewards,
             "step/return": np.cumsum(episode.rewards),

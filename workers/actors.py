@@ -75,6 +75,7 @@ class EpisodeReport(NamedTuple):
     seed: int
     episode_return: float
     success: bool | None
+    goal_steps: int | None
     rewards: np.ndarray
     planning_seconds: np.ndarray
     trajectories: np.ndarray
@@ -153,6 +154,7 @@ class TrialRunner:
             seed=seed,
             episode_return=result.episode_return,
             success=result.success,
+            goal_steps=result.goal_steps,
             rewards=result.rewards,
             planning_seconds=result.planning_seconds,
             trajectories=result.trajectories,

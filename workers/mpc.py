@@ -45,6 +45,8 @@ class EpisodeResult(NamedTuple):
     """Sum of the task's rewards over the episode (the figure of Table 3)."""
     success: bool | None
     """The task's success criterion, None for tasks without one."""
+    goal_steps: int | None
+    """Steps on which the task's goal condition held (DAPG success needs > 25), None without one."""
     rewards: np.ndarray
     """(T,) per-step rewards."""
     planning_seconds: np.ndarray
@@ -103,6 +105,7 @@ def run_episode(
     return EpisodeResult(
         episode_return=float(rewards.sum()),
         success=task.episode_success(achieved) if task.has_success else None,
+        goal_steps=int(sum(achieved)) if task.has_success else None,
         rewards=rewards,
         planning_seconds=np.array([r.planning_seconds for r in records]),
         trajectories=np.array([r.trajectories for r in records]),
