@@ -31,6 +31,7 @@ from orchestrator import report
 from orchestrator.pool import SimulationPool
 from orchestrator.sweep import LoadedSweep, Trial
 from orchestrator.tracking import FAILED, FINISHED, KILLED, Tracker, TrialRun
+from workers import code_fingerprint
 from workers.actors import EpisodeReport, SimulationWorker, TrialRunner
 
 PROGRESS_POLL_SECONDS = 0.5
@@ -296,7 +297,9 @@ class SweepScheduler:
         workers = [worker_actor.remote(config.task, threads) for _ in range(remote_count)]
         pool = SimulationPool(config.task, threads, workers)
         runner_actor = ray.remote(num_cpus=threads, max_concurrency=2, max_restarts=0)(self.runner_class)
-        runner = runner_actor.remote(config.task, config.planner, config.seed, pool, config.max_steps)
+        runner = runner_actor.remote(
+            config.task, config.planner, config.seed, pool, config.max_steps, expected_code=code_fingerprint()
+        )
         run_id = self.tracker.start_trial(
             self._parent_id,
             trial.key,

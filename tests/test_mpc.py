@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from orchestrator.pool import SimulationPool
+from workers import code_fingerprint
 from workers.actors import TrialRunner, episode_seed
 from workers.planning import PlannerConfig
 from workers.tasks import make_task
@@ -59,3 +60,9 @@ def test_success_tasks_count_goal_steps():
         0
     )
     assert report.success in (True, False) and report.goal_steps in (0, 1, 2)
+
+
+def test_runner_refuses_code_that_differs_from_the_driver():
+    with pytest.raises(RuntimeError, match="different icemlab code"):
+        TrialRunner("point_reach", config("point_reach"), seed=0, expected_code="0" * 16)
+    TrialRunner("point_reach", config("point_reach"), seed=0, expected_code=code_fingerprint(), max_steps=1)

@@ -25,6 +25,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from workers import code_fingerprint
 from workers.mpc import Evaluator, StepRecord, run_episode
 from workers.planning import CEMPlanner, PlannerConfig
 from workers.rollout import BatchEvaluator
@@ -98,6 +99,8 @@ class TrialRunner:
         seed: the trial seed.
         evaluator: where planning costs come from (``costs(state, actions)``).
         max_steps: cut episodes to this many steps (default: the task's length).
+        threads: rollout threads of the in-process evaluator (when ``evaluator`` is None).
+        expected_code: the driver's :func:`workers.code_fingerprint`; a mismatch is refused.
     """
 
     def __init__(
@@ -108,7 +111,13 @@ class TrialRunner:
         evaluator: Evaluator | None = None,
         max_steps: int | None = None,
         threads: int = 1,
+        expected_code: str | None = None,
     ):
+        if expected_code is not None and expected_code != code_fingerprint():
+            raise RuntimeError(
+                f"this node runs different icemlab code (fingerprint {code_fingerprint()}) than the driver "
+                f"({expected_code}); install the same icemlab on every node (see deploy/Dockerfile)"
+            )
         self.task = make_task(task_name)
         self.env = self.task.make_env()
         self.planner_config = planner
