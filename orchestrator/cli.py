@@ -303,6 +303,9 @@ def cmd_tasks(args) -> int:
 
     for name, task in TASKS.items():
         print(f"{name:25s} beta {task.colored_noise_beta:<4}  {task.description}")
+        for option, field in task.Options.model_fields.items():
+            doc = " ".join((field.description or "").split())
+            print(f"{'':27s}task_options.{option} (default {field.default!r}): {doc}")
     return 0
 
 

@@ -30,12 +30,16 @@ class SimulationPool:
         task_name: task of the workers.
         local_threads: rollout threads of the co-located worker; None for none.
         remote_workers: SimulationWorker actor handles.
+        task_options: options of the co-located worker's task (remote workers get theirs at creation).
     """
 
-    def __init__(self, task_name: str, local_threads: int | None, remote_workers: list):
+    def __init__(
+        self, task_name: str, local_threads: int | None, remote_workers: list, task_options: dict | None = None
+    ):
         if local_threads is None and not remote_workers:
             raise ValueError("a simulation pool needs at least one worker")
         self.task_name = task_name
+        self.task_options = task_options
         self.local_threads = local_threads
         self.remote_workers = list(remote_workers)
         self._local: SimulationWorker | None = None
@@ -51,7 +55,7 @@ class SimulationPool:
     def prepare(self) -> None:
         """Build the co-located worker now, so that its start-up is not counted as planning time."""
         if self.local_threads is not None and self._local is None:
-            self._local = SimulationWorker(self.task_name, self.local_threads)
+            self._local = SimulationWorker(self.task_name, self.local_threads, self.task_options)
 
     @property
     def size(self) -> int:

@@ -294,11 +294,17 @@ class SweepScheduler:
         config = trial.config
         remote_count = self.sweep.resources.simulation_workers - 1
         worker_actor = ray.remote(num_cpus=threads, max_restarts=3, max_task_retries=3)(SimulationWorker)
-        workers = [worker_actor.remote(config.task, threads) for _ in range(remote_count)]
-        pool = SimulationPool(config.task, threads, workers)
+        workers = [worker_actor.remote(config.task, threads, config.task_options) for _ in range(remote_count)]
+        pool = SimulationPool(config.task, threads, workers, config.task_options)
         runner_actor = ray.remote(num_cpus=threads, max_concurrency=2, max_restarts=0)(self.runner_class)
         runner = runner_actor.remote(
-            config.task, config.planner, config.seed, pool, config.max_steps, expected_code=code_fingerprint()
+            config.task,
+            config.planner,
+            config.seed,
+            pool,
+            config.max_steps,
+            expected_code=code_fingerprint(),
+            task_options=config.task_options,
         )
         run_id = self.tracker.start_trial(
             self._parent_id,

@@ -81,6 +81,8 @@ class TrialSettings(_UserModel):
 
     planner: PlannerConfig = PlannerConfig()
     """The planner: budget, horizon and the switches of the CEM family (see PlannerConfig)."""
+    task_options: dict[str, Any] = {}
+    """Switches of the task's planning cost (see `icemlab tasks`), e.g. flip_penalty, velocity_term."""
     episodes: int = Field(1, ge=1)
     """MPC episodes per trial (each with its own seed derived from the trial seed)."""
     max_steps: int | None = Field(None, ge=1)
@@ -178,6 +180,7 @@ class TrialConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     task: str
+    task_options: dict[str, Any]
     planner: PlannerConfig
     episodes: int = Field(ge=1)
     max_steps: int | None = Field(ge=1)
@@ -191,6 +194,7 @@ class TrialConfig(BaseModel):
     def flat(self) -> dict[str, Any]:
         """Dotted-path view for MLflow params."""
         flat = {"task": self.task, "episodes": self.episodes, "max_steps": self.max_steps, "seed": self.seed}
+        flat.update({f"task_options.{k}": v for k, v in self.task_options.items()})
         flat.update({f"planner.{k}": v for k, v in self.planner.model_dump().items()})
         return flat
 
@@ -247,8 +251,8 @@ PLANNER_FIELDS = tuple(PlannerConfig.model_fields)
 
 def parameter_path_problem(path: str) -> str | None:
     """Why ``path`` cannot be swept, or None."""
-    if path in TOP_LEVEL_PATHS:
-        return None
+    if path in TOP_LEVEL_PATHS or (path.startswith("task_options.") and len(path) > len("task_options.")):
+        return None  # task options are checked against the task's own options when trials expand
     if path.startswith("planner."):
         field = path.removeprefix("planner.")
         if field == "algorithm":
@@ -261,7 +265,10 @@ def parameter_path_problem(path: str) -> str | None:
     candidates = list(TOP_LEVEL_PATHS) + [f"planner.{f}" for f in PLANNER_FIELDS]
     close = difflib.get_close_matches(path, candidates, n=1)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return f"unknown parameter path {path!r}{hint}; sweepable: task, algorithm, episodes, max_steps, planner.<field>"
+    return (
+        f"unknown parameter path {path!r}{hint}; "
+        "sweepable: task, algorithm, episodes, max_steps, planner.<field>, task_options.<option>"
+    )
 
 
 # ------------------------------------------------------------ locations
@@ -364,6 +371,8 @@ def _set_path(config: dict[str, Any], path: str, value: Any) -> None:
         config["planner"]["algorithm"] = value
     elif path.startswith("planner."):
         config["planner"][path.removeprefix("planner.")] = value
+    elif path.startswith("task_options."):
+        config["task_options"][path.removeprefix("task_options.")] = value
     else:
         config[path] = value
 
@@ -409,6 +418,7 @@ def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml
             for seed in sweep.seeds:
                 config = {
                     "task": sweep.task,
+                    "task_options": dict(sweep.base.task_options),
                     "planner": dict(base_planner),
                     "episodes": sweep.base.episodes,
                     "max_steps": sweep.base.max_steps,
@@ -446,19 +456,29 @@ def _resolve_trial(config, overrides, file, root, problems) -> TrialConfig | Non
         problems.append(SweepProblem(file, blame("task"), "task", unknown_task_message(str(task))))
         return None
 
-    def report(error: ValidationError, prefix: str) -> None:
+    def report(error: ValidationError, prefix: str, fields: list[str] | None = None) -> None:
         for item in error.errors():
             path = ".".join([prefix, *map(str, item["loc"])] if prefix else map(str, item["loc"])) or prefix
             message = item["msg"].removeprefix("Value error, ")
+            if item["type"] == "extra_forbidden" and fields is not None:
+                close = difflib.get_close_matches(str(item["loc"][-1]), fields, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                message = f"{task} has no option {item['loc'][-1]!r}{hint}; its options: {', '.join(fields) or 'none'}"
             problems.append(SweepProblem(file, blame(path), path, message))
 
     try:
-        planner = PlannerConfig.model_validate(config["planner"]).resolved(make_task(task).colored_noise_beta)
+        task_instance = make_task(task, config["task_options"])
+    except ValidationError as error:
+        report(error, "task_options", list(TASKS[task].Options.model_fields))
+        return None
+    try:
+        planner = PlannerConfig.model_validate(config["planner"]).resolved(task_instance.colored_noise_beta)
     except ValidationError as error:
         report(error, "planner")
         return None
     try:
-        return TrialConfig.model_validate({**config, "planner": planner})
+        options = task_instance.options.model_dump()
+        return TrialConfig.model_validate({**config, "planner": planner, "task_options": options})
     except ValidationError as error:
         report(error, "")
         return None

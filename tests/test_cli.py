@@ -81,6 +81,16 @@ BAD_SWEEPS = {
         (4, "parameters.planner.sigma"),
         "did you mean 'planner.sigma_init'",
     ),
+    "unknown_task_option": (
+        "name: x\ntask: door_sparse\nbase:\n  task_options:\n    velocity: qvel\n",
+        (5, "task_options.velocity"),
+        "did you mean 'velocity_term'",
+    ),
+    "bad_task_option_value": (
+        "name: x\ntask: halfcheetah_running\nparameters:\n  task_options.flip_penalty:\n    values: [10, -1]\n",
+        (4, "task_options.flip_penalty"),
+        "greater than or equal to 0",
+    ),
     "too_many_trials": (
         "name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n"
         "  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n",

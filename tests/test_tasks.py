@@ -93,3 +93,49 @@ def test_fetch_success_is_the_final_step():
     fetch = make_task("fetch_pick_place_sparse")
     assert fetch.episode_success([True] * 49 + [False]) is False
     assert fetch.episode_success([False] * 49 + [True]) is True
+
+
+def test_door_observation_matches_the_environment(task_bundle):
+    door, env, _ = task_bundle("door")
+    env.reset(seed=3)
+    env.step(np.random.default_rng(0).uniform(-1, 1, door.action_dim))
+    raw = env.unwrapped
+    rebuilt = door._observation(raw.model, raw.data.qpos, door._env_quantities(env))
+    np.testing.assert_array_equal(rebuilt, raw._get_obs())
+
+
+@pytest.mark.parametrize("name", ["door", "door_sparse"])
+def test_door_planning_cost_options(name, task_bundle):
+    """velocity_term=qvel plans on -reward; the default swaps in the authors' observation term."""
+    from workers.rollout import BatchEvaluator
+
+    _, env, model = task_bundle(name)
+    env.reset(seed=4)
+    literal, authors = make_task(name, {"velocity_term": "qvel"}), make_task(name)
+    state = literal.capture(env)
+    actions = np.random.default_rng(1).uniform(-1, 1, (4, 6, literal.action_dim))
+    with BatchEvaluator(literal, model, threads=1) as evaluator:
+        batch = evaluator.simulate(state, actions)
+    np.testing.assert_array_equal(literal.costs(model, batch), -literal.rewards(model, batch))
+    q = authors._batch_quantities(model, batch)
+    tail = authors._observation(model, authors.qpos(model, batch.states), q)[..., -30:]
+    expected = -authors.rewards(model, batch) - 1e-5 * np.sum(q["qvel"] ** 2, -1) + 1e-5 * np.sum(tail**2, -1)
+    np.testing.assert_allclose(authors.costs(model, batch), expected, rtol=0, atol=1e-12)
+    assert not np.allclose(authors.costs(model, batch), literal.costs(model, batch), rtol=0, atol=1e-9)
+
+
+def test_halfcheetah_flip_penalty_option(task_bundle):
+    from workers.rollout import BatchEvaluator
+
+    _, env, model = task_bundle("halfcheetah_running")
+    env.reset(seed=0)
+    raw = env.unwrapped
+    raw.set_state(raw.data.qpos + np.array([0, 0, 2.5] + [0] * 6), raw.data.qvel)  # on its back
+    plain, penalised = make_task("halfcheetah_running", {"flip_penalty": 0}), make_task("halfcheetah_running")
+    state = plain.capture(env)
+    with BatchEvaluator(plain, model, threads=1) as evaluator:
+        batch = evaluator.simulate(state, np.random.default_rng(0).uniform(-1, 1, (3, 5, 6)))
+    np.testing.assert_array_equal(plain.costs(model, batch), -plain.rewards(model, batch))
+    flipped = np.abs(batch.states[..., 3]) > np.pi / 2  # qpos[2] is the root angle
+    assert flipped.any()
+    np.testing.assert_array_equal(penalised.costs(model, batch) - plain.costs(model, batch), 10.0 * flipped)

@@ -38,10 +38,11 @@ class SimulationWorker:
     Args:
         task_name: registry name of the task.
         threads: native rollout threads of this worker.
+        task_options: the task's options (its planning cost switches).
     """
 
-    def __init__(self, task_name: str, threads: int = 1):
-        self.task = make_task(task_name)
+    def __init__(self, task_name: str, threads: int = 1, task_options: dict[str, Any] | None = None):
+        self.task = make_task(task_name, task_options)
         env = self.task.make_env()
         env.reset(seed=0)
         model = self.task.build_planning_model(env)
@@ -101,6 +102,7 @@ class TrialRunner:
         max_steps: cut episodes to this many steps (default: the task's length).
         threads: rollout threads of the in-process evaluator (when ``evaluator`` is None).
         expected_code: the driver's :func:`workers.code_fingerprint`; a mismatch is refused.
+        task_options: the task's options (its planning cost switches).
     """
 
     def __init__(
@@ -112,13 +114,14 @@ class TrialRunner:
         max_steps: int | None = None,
         threads: int = 1,
         expected_code: str | None = None,
+        task_options: dict[str, Any] | None = None,
     ):
         if expected_code is not None and expected_code != code_fingerprint():
             raise RuntimeError(
                 f"this node runs different icemlab code (fingerprint {code_fingerprint()}) than the driver "
                 f"({expected_code}); install the same icemlab on every node (see deploy/Dockerfile)"
             )
-        self.task = make_task(task_name)
+        self.task = make_task(task_name, task_options)
         self.env = self.task.make_env()
         self.planner_config = planner
         self.seed = seed

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import difflib
+from typing import Any
 
 from workers.tasks.adroit import Door, DoorSparse, Relocate
-from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome
+from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome, TaskOptions
 from workers.tasks.fetch import FetchPickPlaceSparse
 from workers.tasks.locomotion import HalfCheetahRunning, HumanoidStandup
 from workers.tasks.point_reach import PointReach
@@ -27,12 +28,13 @@ def unknown_task_message(name: str) -> str:
     return f"unknown task {name!r}{hint}; known tasks: {', '.join(TASKS)}"
 
 
-def make_task(name: str) -> GroundTruthTask:
-    """The task registered under ``name``."""
+def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTask:
+    """The task registered under ``name``, with its options (see each task's ``Options``)."""
     try:
-        return TASKS[name]()
+        task_class = TASKS[name]
     except KeyError:
         raise UnknownTaskError(unknown_task_message(name)) from None
+    return task_class(**(options or {}))
 
 
 __all__ = [
@@ -42,6 +44,7 @@ __all__ = [
     "RolloutBatch",
     "SimState",
     "StepOutcome",
+    "TaskOptions",
     "UnknownTaskError",
     "make_task",
     "unknown_task_message",

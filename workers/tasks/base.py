@@ -30,6 +30,7 @@ from typing import Any, ClassVar, Literal, NamedTuple
 import gymnasium as gym
 import mujoco
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
 FULL_PHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 
@@ -133,8 +134,21 @@ def copy_model_parameters(dst: mujoco.MjModel, src: mujoco.MjModel) -> None:
             np.copyto(target, value)
 
 
+class TaskOptions(BaseModel):
+    """Switches of a task's planning cost; a sweep sets them under ``task_options``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+
 class GroundTruthTask(ABC):
-    """A thesis task with MuJoCo ground-truth dynamics (chapter 3)."""
+    """A thesis task with MuJoCo ground-truth dynamics (chapter 3).
+
+    Args:
+        **options: values for the task's :attr:`Options` (validated; unknown keys are errors).
+    """
+
+    Options: ClassVar[type[TaskOptions]] = TaskOptions
+    """The task's options model."""
 
     name: ClassVar[str]
     """Registry name used in sweeps, e.g. ``halfcheetah_running``."""
@@ -160,6 +174,9 @@ class GroundTruthTask(ABC):
     """Whether the task defines a success criterion."""
     description: ClassVar[str] = ""
     """One line for ``icemlab tasks`` and error messages."""
+
+    def __init__(self, **options: Any):
+        self.options = self.Options(**options)
 
     # ----------------------------------------------------------------- envs
     def make_env(self) -> gym.Env:

@@ -6,8 +6,14 @@ import math
 
 import mujoco
 import numpy as np
+from pydantic import Field
 
-from workers.tasks.base import FULL_PHYSICS, GroundTruthTask, RolloutBatch, SimState
+from workers.tasks.base import FULL_PHYSICS, GroundTruthTask, RolloutBatch, SimState, TaskOptions
+
+
+class HalfCheetahOptions(TaskOptions):
+    flip_penalty: float = Field(10.0, ge=0)
+    """Planning cost per step while |root angle| > pi/2 (0 switches the penalty off)."""
 
 
 class HalfCheetahRunning(GroundTruthTask):
@@ -22,14 +28,13 @@ class HalfCheetahRunning(GroundTruthTask):
 
     name = "halfcheetah_running"
     env_id = "HalfCheetah-v5"
+    Options = HalfCheetahOptions
     episode_length = 1000
     frame_skip = 5
     action_dim = 6
     colored_noise_beta = 0.25
     description = "HalfCheetah, forward velocity with a flip penalty (1000 steps)"
 
-    flip_penalty = 10.0
-    """Planning cost added per step while |root angle| > pi/2."""
     ctrl_cost_weight = 0.1
     """Weight of ||a||^2 in gymnasium's HalfCheetah reward."""
 
@@ -46,7 +51,7 @@ class HalfCheetahRunning(GroundTruthTask):
     def costs(self, model: mujoco.MjModel, batch: RolloutBatch) -> np.ndarray:
         root_angle = self.qpos(model, batch.states)[..., 2]
         flipped = np.abs(root_angle) > math.pi / 2
-        return -self.rewards(model, batch) + self.flip_penalty * flipped
+        return -self.rewards(model, batch) + self.options.flip_penalty * flipped
 
 
 class HumanoidStandup(GroundTruthTask):
