@@ -66,3 +66,21 @@ def test_runner_refuses_code_that_differs_from_the_driver():
     with pytest.raises(RuntimeError, match="different icemlab code"):
         TrialRunner("point_reach", config("point_reach"), seed=0, expected_code="0" * 16)
     TrialRunner("point_reach", config("point_reach"), seed=0, expected_code=code_fingerprint(), max_steps=1)
+
+
+@pytest.mark.parametrize(
+    "shape, fill, message",
+    [
+        ((4, 5), 0.0, "must be"),
+        ((4, 5, 3), 0.0, r"\(N, horizon, 2\)"),
+        ((0, 5, 2), 0.0, "must be"),
+        ((2, 3, 2), np.nan, "NaN"),
+    ],
+)
+def test_evaluator_rejects_bad_batches_before_mujoco(shape, fill, message, task_bundle):
+    from workers.rollout import BatchEvaluator
+
+    task, env, model = task_bundle("point_reach")
+    state = task.capture(env)
+    with BatchEvaluator(task, model, threads=1) as evaluator, pytest.raises(ValueError, match=message):
+        evaluator.costs(state, np.full(shape, fill))

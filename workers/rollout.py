@@ -70,8 +70,12 @@ class BatchEvaluator:
     def simulate(self, state: SimState, actions: np.ndarray, keep_substeps: bool = False) -> RolloutBatch:
         """Simulate N action sequences (N, h, d) in [-1, 1] from ``state``."""
         actions = np.asarray(actions, dtype=np.float64)
-        if actions.ndim != 3:
-            raise ValueError(f"actions must be (N, horizon, action_dim), got shape {actions.shape}")
+        if actions.ndim != 3 or actions.shape[2] != self.task.action_dim or 0 in actions.shape:
+            raise ValueError(
+                f"actions must be (N, horizon, {self.task.action_dim}) for {self.task.name}, got shape {actions.shape}"
+            )
+        if not np.isfinite(actions).all():
+            raise ValueError("actions contain NaN or infinite values")
         self.task.load_into(self.model, state)
         n, horizon, _ = actions.shape
         skip = self.task.frame_skip
