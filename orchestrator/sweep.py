@@ -19,7 +19,16 @@ from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from workers.planning.config import Algorithm, PlannerConfig
 from workers.tasks import TASKS, make_task, unknown_task_message
@@ -127,6 +136,14 @@ ParameterPath = Annotated[str, AfterValidator(_check_parameter_path)]
 """A dotted path that a sweep may vary."""
 
 
+def _check_variant_key(key: str) -> str:
+    return key if key == "name" else _check_parameter_path(key)
+
+
+Variant = dict[Annotated[str, AfterValidator(_check_variant_key)], Any]
+"""A named set of overrides: ``name`` plus dotted paths and their values."""
+
+
 class Sweep(_UserModel):
     """A sweep file: what to run, over which parameters and seeds, and how."""
 
@@ -140,6 +157,9 @@ class Sweep(_UserModel):
     """Configuration shared by all trials."""
     parameters: dict[ParameterPath, GridParameter | RandomParameter] = {}
     """Parameters to vary, by dotted path (task, algorithm, planner.<field>, episodes, max_steps)."""
+    variants: list[Variant] = []
+    """Named sets of overrides run side by side, e.g. ablations (thesis Fig. 7):
+    [{name: full}, {name: no-colored-noise, planner.noise_beta: 0}]. Combined with every grid point and seed."""
     num_samples: int = Field(1, ge=1)
     """Draws of the random parameters (each combined with every grid point and seed)."""
     seeds: list[int] = Field([0], min_length=1)
@@ -154,6 +174,21 @@ class Sweep(_UserModel):
     """Refuse sweeps that expand to more trials than this (guards against runaway grids)."""
     tracking: Tracking = Tracking()
     """MLflow experiment and tags."""
+
+    @field_validator("variants")
+    @classmethod
+    def _variants_are_named_and_distinct(cls, variants: list[dict[str, Any]], info: ValidationInfo):
+        names = [variant.get("name") for variant in variants]
+        if any(not isinstance(name, str) or not name for name in names):
+            raise ValueError("every variant needs a 'name'")
+        if len(set(names)) != len(names):
+            raise ValueError(f"variant names must differ, got {names}")
+        parameters = info.data.get("parameters") or {}
+        for variant in variants:
+            clash = set(variant) & set(parameters)
+            if clash:
+                raise ValueError(f"{sorted(clash)} set both by variant {variant['name']!r} and by parameters")
+        return variants
 
     @field_validator("task")
     @classmethod
@@ -389,7 +424,8 @@ def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml
     randoms = {p: spec for p, spec in sweep.parameters.items() if isinstance(spec, RandomParameter)}
     grid_points = math.prod(len(v) for v in grid.values()) if grid else 1
     samples = sweep.num_samples if randoms else 1
-    count = grid_points * samples * len(sweep.seeds)
+    variants = sweep.variants or [{}]
+    count = len(variants) * grid_points * samples * len(sweep.seeds)
     if count > sweep.max_trials:
         line = _node_line(root, ("parameters",))
         raise SweepError(
@@ -412,9 +448,15 @@ def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml
     trials: list[Trial] = []
     problems: list[SweepProblem] = []
     seen: dict[str, int] = {}
-    for combination in itertools.product(*grid.values()) if grid else [()]:
-        for draw in draws:
-            overrides = dict(zip(grid, combination)) | draw
+    combinations = list(itertools.product(*grid.values())) if grid else [()]
+    for index, variant in enumerate(variants):
+        # Where each override comes from in the YAML, to locate its errors.
+        variant_overrides = {path: value for path, value in variant.items() if path != "name"}
+        sources = {path: ("variants", index, path) for path in variant_overrides}
+        sources |= {path: ("parameters", path) for path in sweep.parameters}
+        for combination, draw in itertools.product(combinations, draws):
+            overrides = variant_overrides | dict(zip(grid, combination)) | draw
+            shown = ({"variant": variant["name"]} if variant else {}) | overrides
             for seed in sweep.seeds:
                 config = {
                     "task": sweep.task,
@@ -426,29 +468,35 @@ def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml
                 }
                 for path, value in overrides.items():
                     _set_path(config, path, value)
-                trial = _resolve_trial(config, overrides, file, root, problems)
+                trial = _resolve_trial(config, sources, file, root, problems)
                 if trial is None:
                     continue
                 key = trial.key()
                 if key in seen:
                     continue  # identical configurations (e.g. a repeated grid value) run once
                 seen[key] = len(trials)
-                trials.append(Trial(key, len(trials), trial, overrides))
+                trials.append(Trial(key, len(trials), trial, shown))
     if problems:
         raise SweepError(sorted(dict.fromkeys(problems), key=lambda p: p.line))
     return trials
 
 
-def _resolve_trial(config, overrides, file, root, problems) -> TrialConfig | None:
+def _resolve_trial(config, sources, file, root, problems) -> TrialConfig | None:
+    """Validate and resolve one trial's config; on failure add located problems and return None.
+
+    ``sources`` maps each overridden path to its location in the YAML (a
+    parameter or a variant), so that an invalid value is reported where it
+    was written.
+    """
+
     def blame(path: str) -> int:
-        """The line of the parameter that set ``path``, else of the base key."""
-        for parameter in overrides:
+        for parameter, location in sources.items():
             if (
                 path == parameter
                 or path.startswith(parameter + ".")
                 or (parameter == "algorithm" and path == "planner.algorithm")
             ):
-                return _node_line(root, ("parameters", parameter))
+                return _node_line(root, location)
         return _node_line(root, ("base", *path.split(".")))
 
     task = config["task"]

@@ -91,6 +91,16 @@ BAD_SWEEPS = {
         (4, "task_options.flip_penalty"),
         "greater than or equal to 0",
     ),
+    "variant_bad_budget": (
+        "name: x\ntask: point_reach\nvariants:\n  - name: a\n  - name: b\n    planner.budget: 5\n",
+        (6, "planner.budget"),
+        "below 2K",
+    ),
+    "variant_without_name": (
+        "name: x\ntask: point_reach\nvariants:\n  - planner.budget: 50\n",
+        (3, "variants"),
+        "needs a 'name'",
+    ),
     "too_many_trials": (
         "name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n"
         "  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n",
@@ -187,3 +197,25 @@ def test_random_parameters_are_repeatable(tmp_path):
     first = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
     second = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
     assert first == second and len(set(first)) == 3 and all(0.2 <= s <= 0.8 for s in first)
+
+
+def test_variants_run_side_by_side_with_grids_and_seeds(tmp_path):
+    sweep = write_sweep(
+        tmp_path,
+        "ablation",
+        variants=[
+            {"name": "full"},
+            {"name": "white", "planner.noise_beta": 0.0},
+            {"name": "mpc", "algorithm": "cem_mpc"},
+        ],
+        parameters={"planner.budget": {"values": [50, 100]}},
+        seeds=[0, 1],
+    )
+    trials = load_sweep(sweep).trials
+    assert len(trials) == 3 * 2 * 2
+    by_variant = {}
+    for trial in trials:
+        by_variant.setdefault(trial.overrides["variant"], []).append(trial.config.planner)
+    assert {p.noise_beta for p in by_variant["full"]} == {1.0}  # point_reach's beta
+    assert {p.noise_beta for p in by_variant["white"]} == {0.0}
+    assert {p.algorithm for p in by_variant["mpc"]} == {"cem_mpc"}
