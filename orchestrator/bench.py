@@ -137,8 +137,8 @@ def service_figures(steps: int, threads: int) -> dict[str, Any]:
         service = runner_actor.remote(SERVICE_TASK, config, 0, SimulationPool(SERVICE_TASK, threads, []), steps)
         local_s, service_s = [], []
         for _ in range(3):  # alternate, so that machine noise hits both alike
-            local_s.append(in_process.run_episode(0).planning_seconds.mean())
-            service_s.append(ray.get(service.run_episode.remote(0)).planning_seconds.mean())
+            local_s.append(in_process.run_episode(0).result.planning_seconds.mean())
+            service_s.append(ray.get(service.run_episode.remote(0)).result.planning_seconds.mean())
         service_memory = ray.get(service.peak_memory_mb.remote())
         ray.kill(service)  # frees its CPUs for the next layout
         # Half the threads co-located, half in one remote SimulationWorker actor.
@@ -149,8 +149,8 @@ def service_figures(steps: int, threads: int) -> dict[str, Any]:
         )
         split_local_s, split_s = [], []
         for _ in range(3):
-            split_local_s.append(in_process.run_episode(0).planning_seconds.mean())
-            split_s.append(ray.get(split.run_episode.remote(0)).planning_seconds.mean())
+            split_local_s.append(in_process.run_episode(0).result.planning_seconds.mean())
+            split_s.append(ray.get(split.run_episode.remote(0)).result.planning_seconds.mean())
     finally:
         in_process.evaluator.close()
         if started_ray:

@@ -284,7 +284,7 @@ class SweepScheduler:
         return trial.config.episodes * length
 
     def _steps_done(self, active: ActiveTrial) -> int:
-        finished_episodes = sum(len(r.rewards) for r in active.reports)
+        finished_episodes = sum(len(r.result.rewards) for r in active.reports)
         in_episode = active.progress.get("step", 0) if active.progress.get("episode") == active.episode else 0
         return finished_episodes + in_episode
 
@@ -337,16 +337,17 @@ class SweepScheduler:
             except Exception:  # already gone
                 pass
 
-    def _record_episode(self, active: ActiveTrial, episode: EpisodeReport) -> None:
-        active.reports.append(episode)
-        offset = sum(len(r.rewards) for r in active.reports[:-1])
+    def _record_episode(self, active: ActiveTrial, report_: EpisodeReport) -> None:
+        active.reports.append(report_)
+        episode = report_.result
+        offset = sum(len(r.result.rewards) for r in active.reports[:-1])
         per_episode = {
             "episode_return": episode.episode_return,
             "planning_seconds_per_step": float(episode.planning_seconds.mean()),
             "simulated_steps_per_second": episode.simulated_steps_per_second,
             "physics_steps_per_second": episode.physics_steps_per_second,
-            "episode_seconds": episode.episode_seconds,
-            "simulation_worker_restarts": episode.worker_restarts,
+            "episode_seconds": report_.episode_seconds,
+            "simulation_worker_restarts": report_.worker_restarts,
         }
         if episode.success is not None:
             per_episode["success"] = float(episode.success)
@@ -358,21 +359,21 @@ class SweepScheduler:
             "step/trajectories": episode.trajectories,
             "step/best_cost": episode.best_costs,
         }
-        self.tracker.log_episode(active.run_id, episode.episode, offset, per_step, per_episode)
+        self.tracker.log_episode(active.run_id, report_.episode, offset, per_step, per_episode)
         figure = report.episode_figure(
-            f"{trial_label(active.trial)} episode {episode.episode} (return {episode.episode_return:.1f})",
+            f"{trial_label(active.trial)} episode {report_.episode} (return {episode.episode_return:.1f})",
             episode.rewards,
             episode.planning_seconds,
         )
-        self.tracker.log_figure(active.run_id, figure, f"episodes/episode_{episode.episode:03d}.png")
+        self.tracker.log_figure(active.run_id, figure, f"episodes/episode_{report_.episode:03d}.png")
         report.close(figure)
 
     def _finish_trial(self, active: ActiveTrial) -> report.TrialResult:
-        reports = active.reports
-        successes = [float(r.success) for r in reports if r.success is not None]
-        seconds = float(np.mean(np.concatenate([r.planning_seconds for r in reports])))
+        results = [r.result for r in active.reports]
+        successes = [float(r.success) for r in results if r.success is not None]
+        seconds = float(np.mean(np.concatenate([r.planning_seconds for r in results])))
         summary = {
-            "mean_return": float(np.mean([r.episode_return for r in reports])),
+            "mean_return": float(np.mean([r.episode_return for r in results])),
             "mean_planning_seconds_per_step": seconds,
         }
         if successes:

@@ -19,7 +19,7 @@ def config(task_name: str, **overrides) -> PlannerConfig:
 
 def test_episode_report_is_consistent():
     runner = TrialRunner("point_reach", config("point_reach"), seed=3, max_steps=12)
-    report = runner.run_episode(0)
+    report = runner.run_episode(0).result
     assert len(report.rewards) == len(report.planning_seconds) == len(report.trajectories) == 12
     assert report.episode_return == pytest.approx(report.rewards.sum())
     assert report.success is None and report.goal_steps is None  # the tiny task has no success criterion
@@ -32,9 +32,9 @@ def test_episode_report_is_consistent():
 def test_same_seed_same_episode_and_episodes_differ():
     runner = TrialRunner("point_reach", config("point_reach"), seed=5, max_steps=10)
     first, again, second = runner.run_episode(0), runner.run_episode(0), runner.run_episode(1)
-    np.testing.assert_array_equal(first.rewards, again.rewards)
+    np.testing.assert_array_equal(first.result.rewards, again.result.rewards)
     assert second.seed == episode_seed(5, 1) != first.seed == 5
-    assert not np.array_equal(first.rewards, second.rewards)
+    assert not np.array_equal(first.result.rewards, second.result.rewards)
 
 
 def test_planning_beats_doing_nothing():
@@ -43,7 +43,7 @@ def test_planning_beats_doing_nothing():
     env = task.make_env()
     env.reset(seed=2)
     idle = sum(task.step_env(env, np.zeros(task.action_dim)).reward for _ in range(30))
-    planned = TrialRunner("point_reach", config("point_reach"), seed=2, max_steps=30).run_episode(0)
+    planned = TrialRunner("point_reach", config("point_reach"), seed=2, max_steps=30).run_episode(0).result
     assert planned.episode_return > idle + 1.0
 
 
@@ -52,13 +52,12 @@ def test_pool_with_a_co_located_worker_needs_no_ray():
     planner = config("point_reach")
     pooled = TrialRunner("point_reach", planner, 4, SimulationPool("point_reach", 1, []), max_steps=8).run_episode(0)
     direct = TrialRunner("point_reach", planner, 4, max_steps=8).run_episode(0)
-    np.testing.assert_array_equal(pooled.rewards, direct.rewards)
+    np.testing.assert_array_equal(pooled.result.rewards, direct.result.rewards)
 
 
 def test_success_tasks_count_goal_steps():
-    report = TrialRunner("fetch_pick_place_sparse", config("fetch_pick_place_sparse"), seed=0, max_steps=2).run_episode(
-        0
-    )
+    runner = TrialRunner("fetch_pick_place_sparse", config("fetch_pick_place_sparse"), seed=0, max_steps=2)
+    report = runner.run_episode(0).result
     assert report.success in (True, False) and report.goal_steps in (0, 1, 2)
 
 

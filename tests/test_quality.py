@@ -22,7 +22,7 @@ def episode(task_name: str, algorithm: str, budget: int, seed: int = 0):
     config = PlannerConfig(algorithm=algorithm, budget=budget).resolved(task.colored_noise_beta)
     runner = TrialRunner(task_name, config, seed=seed, threads=2)
     try:
-        return runner.run_episode(0)
+        return runner.run_episode(0).result
     finally:
         runner.evaluator.close()
 

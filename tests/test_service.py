@@ -133,7 +133,7 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
     # Costs are a pure function of state and actions, so the retried call changes nothing.
     trial = loaded.trials[0].config
     undisturbed = TrialRunner(trial.task, trial.planner, trial.seed, max_steps=trial.max_steps).run_episode(0)
-    assert child.metrics["episode_return"] == pytest.approx(undisturbed.episode_return, abs=1e-9)
+    assert child.metrics["episode_return"] == pytest.approx(undisturbed.result.episode_return, abs=1e-9)
 
 
 def test_driver_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):

@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from workers import code_fingerprint
-from workers.mpc import Evaluator, StepRecord, run_episode
+from workers.mpc import EpisodeResult, Evaluator, StepRecord, run_episode
 from workers.planning import CEMPlanner, PlannerConfig
 from workers.rollout import BatchEvaluator
 from workers.tasks import SimState, make_task
@@ -74,19 +74,13 @@ class EpisodeReport(NamedTuple):
     """One finished episode of a trial, as sent back to the driver."""
 
     episode: int
+    """Index of the episode within the trial."""
     seed: int
-    episode_return: float
-    success: bool | None
-    goal_steps: int | None
-    rewards: np.ndarray
-    planning_seconds: np.ndarray
-    trajectories: np.ndarray
-    best_costs: np.ndarray
-    simulated_steps_per_second: float
-    """Planner throughput: simulated environment steps per second of planning."""
-    physics_steps_per_second: float
-    """Planner throughput in physics steps (simulated steps x frame skip) per second."""
+    """Seed of the episode (:func:`episode_seed`)."""
+    result: EpisodeResult
+    """Return, success and per-step figures of the episode."""
     episode_seconds: float
+    """Wall-clock seconds of the whole episode (planning and environment steps)."""
     worker_restarts: int
     """Simulation-worker restarts observed during the episode."""
 
@@ -150,10 +144,8 @@ class TrialRunner:
         seed = episode_seed(self.seed, episode)
         planner = CEMPlanner(self.planner_config, self.action_dim, seed=seed)
         restarts_before = getattr(self.evaluator, "restarts", 0)
-        best_costs: list[float] = []
 
         def on_step(record: StepRecord) -> None:
-            best_costs.append(record.best_cost)
             with self._lock:
                 self._progress = {"episode": episode, "step": record.step + 1, "steps": self.episode_steps}
 
@@ -164,15 +156,7 @@ class TrialRunner:
         return EpisodeReport(
             episode=episode,
             seed=seed,
-            episode_return=result.episode_return,
-            success=result.success,
-            goal_steps=result.goal_steps,
-            rewards=result.rewards,
-            planning_seconds=result.planning_seconds,
-            trajectories=result.trajectories,
-            best_costs=np.array(best_costs),
-            simulated_steps_per_second=result.simulated_steps_per_second,
-            physics_steps_per_second=result.simulated_steps_per_second * result.frame_skip,
+            result=result,
             episode_seconds=time.perf_counter() - started,
             worker_restarts=getattr(self.evaluator, "restarts", 0) - restarts_before,
         )

@@ -53,6 +53,8 @@ class EpisodeResult(NamedTuple):
     """(T,) wall-clock seconds spent planning each step."""
     trajectories: np.ndarray
     """(T,) action sequences evaluated per step."""
+    best_costs: np.ndarray
+    """(T,) lowest planning cost found at each step (summed over the horizon)."""
     horizon: int
     """Planning horizon; trajectories x horizon = simulated environment steps."""
     frame_skip: int
@@ -67,6 +69,11 @@ class EpisodeResult(NamedTuple):
     def simulated_steps_per_second(self) -> float:
         """Planner throughput in simulated environment steps per second of planning."""
         return self.simulated_steps / max(float(self.planning_seconds.sum()), 1e-12)
+
+    @property
+    def physics_steps_per_second(self) -> float:
+        """Planner throughput in physics steps (simulated steps x frame skip) per second of planning."""
+        return self.simulated_steps_per_second * self.frame_skip
 
 
 def run_episode(
@@ -109,6 +116,7 @@ def run_episode(
         rewards=rewards,
         planning_seconds=np.array([r.planning_seconds for r in records]),
         trajectories=np.array([r.trajectories for r in records]),
+        best_costs=np.array([r.best_cost for r in records]),
         horizon=planner.config.horizon,
         frame_skip=task.frame_skip,
     )

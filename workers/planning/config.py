@@ -47,67 +47,43 @@ CEM_BUDGETS: dict[int, tuple[int, int]] = {
     4000: (8, 500),
 }
 
-# Switch defaults per algorithm. iCEM: section 3.2 and Table 5. CEM_MPC: shift-
-# initialised mean (eq. 32-33), momentum, truncation at the action bounds
-# (section 3.1.1). CEM_PETS: truncation at 2 sigma with sigma capped at half the
-# distance to the nearest bound, zero as the shifted last step (B.4.1). Plain
-# CEM (Alg. 1): a fresh zero mean every step, no momentum, no memory; the thesis
-# leaves its bound handling open and we truncate at the bounds like CEM_MPC.
+# Switch defaults per algorithm. iCEM: section 3.2 and Table 5 (alpha 0.1,
+# gamma 1.25, zeta 0.3, every improvement on, clipping). CEM_MPC (section
+# 3.1.1): shift-initialised mean (eq. 32-33), momentum, truncation at the
+# action bounds, white noise, no memory. CEM_PETS differs from CEM_MPC in its
+# truncation (2 sigma, sigma capped at half the distance to the nearest bound)
+# and a zero last step when shifting (B.4.1). Plain CEM (Alg. 1) starts every
+# step from a zero mean without momentum; the thesis leaves its bound handling
+# open and we truncate at the bounds like CEM_MPC.
+_CEM_MPC = dict(
+    momentum=0.1,
+    population_decay=1.0,
+    elite_fraction=0.0,
+    keep_elites=False,
+    shift_elites=False,
+    shift_mean=True,
+    shift_last="repeat",
+    best_action=False,
+    add_mean=False,
+    bounds="truncate",
+    noise_beta=0.0,
+)
 PRESETS: dict[str, dict[str, Any]] = {
-    "icem": dict(
-        momentum=0.1,
+    "icem": _CEM_MPC
+    | dict(
         population_decay=1.25,
         elite_fraction=0.3,
         keep_elites=True,
         shift_elites=True,
-        shift_mean=True,
-        shift_last="repeat",
         best_action=True,
         add_mean=True,
         bounds="clip",
+        noise_beta=None,  # the task's Table 6 value, filled in by PlannerConfig.resolved
     ),
-    "cem_mpc": dict(
-        momentum=0.1,
-        population_decay=1.0,
-        elite_fraction=0.0,
-        keep_elites=False,
-        shift_elites=False,
-        shift_mean=True,
-        shift_last="repeat",
-        best_action=False,
-        add_mean=False,
-        bounds="truncate",
-        noise_beta=0.0,
-    ),
-    "cem_pets": dict(
-        momentum=0.1,
-        population_decay=1.0,
-        elite_fraction=0.0,
-        keep_elites=False,
-        shift_elites=False,
-        shift_mean=True,
-        shift_last="zero",
-        best_action=False,
-        add_mean=False,
-        bounds="truncate_2sigma",
-        noise_beta=0.0,
-    ),
-    "cem": dict(
-        momentum=0.0,
-        population_decay=1.0,
-        elite_fraction=0.0,
-        keep_elites=False,
-        shift_elites=False,
-        shift_mean=False,
-        shift_last="repeat",
-        best_action=False,
-        add_mean=False,
-        bounds="truncate",
-        noise_beta=0.0,
-    ),
+    "cem_mpc": _CEM_MPC,
+    "cem_pets": _CEM_MPC | dict(shift_last="zero", bounds="truncate_2sigma"),
+    "cem": _CEM_MPC | dict(momentum=0.0, shift_mean=False),
 }
-
-SWITCHES = tuple(PRESETS["icem"])
 
 
 class PlannerConfig(BaseModel):
