@@ -6,7 +6,8 @@
 * raw: the same batches the planner evaluated, re-simulated by native mj_step
   loops on one thread, in physics steps per second; the ratio
   planner / (raw x threads) is the share of the machine's physics rate that
-  planning achieves;
+  planning achieves; the same batches re-simulated by the planner's thread
+  pool alone show how much of the gap is the machine's multi-thread scaling;
 * service: seconds per environment step through the service (a TrialRunner
   actor with its SimulationPool, as ``icemlab run`` lays it out) against the
   same MPC loop in-process, and with one remote SimulationWorker actor.
@@ -22,14 +23,13 @@ import time
 from functools import partial
 from typing import Any
 
-import mujoco
 import numpy as np
 
 from orchestrator.report import PUBLISHED_SECONDS_PER_STEP
 from workers.actors import TrialRunner
 from workers.planning import CEMPlanner, PlannerConfig
 from workers.rollout import BatchEvaluator, default_threads
-from workers.tasks import GroundTruthTask, SimState, make_task
+from workers.tasks import SimState, make_task
 
 HORIZON = 30
 SERVICE_TASK = "halfcheetah_running"
@@ -48,32 +48,32 @@ class RecordingEvaluator:
         return self.evaluator.costs(state, actions)
 
 
-def raw_physics_rate(task: GroundTruthTask, model: mujoco.MjModel, batches) -> float:
-    """Physics steps per second of one thread re-simulating the planner's own batches.
-
-    The same states and action sequences the planner evaluated, stepped by
-    native mj_step loops on the calling thread (mujoco.rollout, nthread=0), so
-    that contacts and controls match what the planner simulated.
-    """
-    single = BatchEvaluator(task, model, threads=0)
+def resimulate(evaluator: BatchEvaluator, batches: list[tuple[SimState, np.ndarray]]) -> tuple[int, float]:
+    """Physics steps and seconds of ``evaluator`` re-simulating recorded batches (no planner work)."""
     steps, elapsed = 0, 0.0
-    try:
-        for state, actions in batches:
-            start = time.perf_counter()
-            single.simulate(state, actions)
-            elapsed += time.perf_counter() - start
-            steps += actions.shape[0] * actions.shape[1] * task.frame_skip
-    finally:
-        single.close()
-    return steps / elapsed
+    for state, actions in batches:
+        start = time.perf_counter()
+        evaluator.simulate(state, actions)
+        elapsed += time.perf_counter() - start
+        steps += actions.shape[0] * actions.shape[1] * evaluator.task.frame_skip
+    return steps, elapsed
 
 
-def planner_figures(task_name: str, budget: int, steps: int, threads: int, blocks: int = 4) -> dict[str, Any]:
+def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> dict[str, Any]:
     """iCEM's planning throughput over ``steps`` MPC steps, and raw MuJoCo's on the same batches.
 
-    The episode is measured in ``blocks`` stretches; after each stretch its
-    batches are re-simulated on one thread, so that slow phases of a shared
-    machine hit both figures alike. The ratio is the median over blocks.
+    Every MPC step is measured three times back to back, so that the slow
+    phases of a shared machine hit all three alike:
+
+    * planner: ``planner.plan`` with all threads (sampling, rollouts, costs, CEM updates);
+    * raw: the same states and action sequences stepped by native mj_step
+      loops on the calling thread (mujoco.rollout, nthread=0), so that contacts
+      and controls match what the planner simulated;
+    * rollouts: the same batches through the planner's thread pool with no
+      planner work, which splits the gap to ``raw x threads`` into the
+      machine's multi-thread scaling and the planner's own overhead.
+
+    Ratios are medians over steps of the per-step ratios.
     """
     task = make_task(task_name)
     config = PlannerConfig(algorithm="icem", budget=budget, horizon=HORIZON).resolved(task.colored_noise_beta)
@@ -81,39 +81,45 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int, block
     env.reset(seed=0)
     model = task.build_planning_model(env)
     evaluator = BatchEvaluator(task, model, threads)
+    single = BatchEvaluator(task, model, threads=0)
     planner = CEMPlanner(config, task.action_dim, seed=0)
-    planning_seconds, physics_steps, raw_rates, block_ratios = 0.0, 0, [], []
-    per_block = max(1, steps // blocks)
+    totals = {"planner": [0, 0.0], "raw": [0, 0.0], "rollouts": [0, 0.0]}
+    ratios, scaling = [], []
     try:
-        for block in range(blocks):
+        for t in range(steps):
             recorder = RecordingEvaluator(evaluator)
-            block_seconds, block_steps = 0.0, 0
-            for t in range(block * per_block, (block + 1) * per_block):
-                state = task.capture(env, time_step=t)
-                started = time.perf_counter()
-                result = planner.plan(partial(recorder.costs, state))
-                block_seconds += time.perf_counter() - started
-                block_steps += result.trajectories * HORIZON * task.frame_skip
-                task.step_env(env, result.action)
-            raw = raw_physics_rate(task, model, recorder.batches)
-            raw_rates.append(raw)
-            block_ratios.append(block_steps / block_seconds / (raw * threads))
-            planning_seconds += block_seconds
-            physics_steps += block_steps
+            state = task.capture(env, time_step=t)
+            started = time.perf_counter()
+            result = planner.plan(partial(recorder.costs, state))
+            measured = {
+                "planner": (result.trajectories * HORIZON * task.frame_skip, time.perf_counter() - started),
+                "raw": resimulate(single, recorder.batches),
+                "rollouts": resimulate(evaluator, recorder.batches),
+            }
+            for key, (n, seconds) in measured.items():
+                totals[key][0] += n
+                totals[key][1] += seconds
+            rate = {key: n / seconds for key, (n, seconds) in measured.items()}
+            ratios.append(rate["planner"] / (rate["raw"] * threads))
+            scaling.append(rate["rollouts"] / (rate["raw"] * threads))
+            task.step_env(env, result.action)
     finally:
         evaluator.close()
+        single.close()
         env.close()
-    planner_rate = physics_steps / planning_seconds
+    rates = {key: n / seconds for key, (n, seconds) in totals.items()}
     return {
         "budget": budget,
         "trajectories_per_step": config.trajectories_per_step(),
-        "seconds_per_step": planning_seconds / (per_block * blocks),
-        "planner_physics_steps_per_second": planner_rate,
-        "planner_env_steps_per_second": planner_rate / task.frame_skip,
-        "raw_physics_steps_per_second": float(np.median(raw_rates)),
+        "seconds_per_step": totals["planner"][1] / steps,
+        "planner_physics_steps_per_second": rates["planner"],
+        "planner_env_steps_per_second": rates["planner"] / task.frame_skip,
+        "raw_physics_steps_per_second": rates["raw"],
         "cores_used": threads,
-        "ratio": float(np.median(block_ratios)),
-        "block_ratios": block_ratios,
+        "ratio": float(np.median(ratios)),
+        "ratio_quartiles": [float(q) for q in np.percentile(ratios, [25, 75])],
+        "rollouts_only_ratio": float(np.median(scaling)),
+        "planner_share_of_rollouts": float(np.median(np.asarray(ratios) / np.asarray(scaling))),
         "thesis_seconds_per_step_1_thread": PUBLISHED_SECONDS_PER_STEP.get((task_name, 1, budget)),
         "thesis_seconds_per_step_32_threads": PUBLISHED_SECONDS_PER_STEP.get((task_name, 32, budget)),
     }
@@ -192,8 +198,8 @@ def run_benchmark(tasks: list[str], budgets: list[int], steps: int, threads: int
 def print_report(results: dict[str, Any]) -> None:
     threads = results["threads"]
     print(f"icemlab bench: {threads} thread(s), horizon {results['horizon']}\n")
-    columns = ("budget", "raw 1-thr", "planner", "ratio", "s/step", "thesis 1/32 thr")
-    widths = (6, 12, 12, 6, 8, 16)
+    columns = ("budget", "raw 1-thr", "planner", "ratio", "rollouts", "s/step", "thesis 1/32 thr")
+    widths = (6, 12, 12, 6, 8, 8, 16)
     header = f"{'task':22s} " + " ".join(f"{c:>{w}s}" for c, w in zip(columns, widths))
     print(header)
     print("-" * len(header))
@@ -205,11 +211,13 @@ def print_report(results: dict[str, Any]) -> None:
             print(
                 f"{name:22s} {e['budget']:>6d} {e['raw_physics_steps_per_second']:>12,.0f} "
                 f"{e['planner_physics_steps_per_second']:>12,.0f} {e['ratio']:>6.2f} "
-                f"{e['seconds_per_step']:>8.3f} {thesis:>16s}"
+                f"{e['rollouts_only_ratio']:>8.2f} {e['seconds_per_step']:>8.3f} {thesis:>16s}"
             )
     print("\nplanner: physics steps/s of planning with all threads; raw: the same batches re-simulated by")
-    print(f"native mj_step loops on one thread; ratio = planner / (raw x {threads}), median over 4 stretches of")
-    print("the episode, each measured back to back; s/step: planning seconds per environment step.")
+    print(f"native mj_step loops on one thread; ratio = planner / (raw x {threads}); rollouts = the same batches")
+    print(f"through the planner's thread pool alone / (raw x {threads}), the machine's multi-thread scaling.")
+    print("Each MPC step is measured all three ways back to back; ratios are medians over steps.")
+    print("s/step: planning seconds per environment step.")
     print(f"peak memory of the in-process runs: {results['in_process_peak_memory_mb']:.0f} MB")
     if "service" in results:
         s = results["service"]

@@ -219,3 +219,24 @@ def test_variants_run_side_by_side_with_grids_and_seeds(tmp_path):
     assert {p.noise_beta for p in by_variant["full"]} == {1.0}  # point_reach's beta
     assert {p.noise_beta for p in by_variant["white"]} == {0.0}
     assert {p.algorithm for p in by_variant["mpc"]} == {"cem_mpc"}
+
+
+def test_bench_json_reports_ratios_per_task_and_budget(capsys):
+    """A tiny ``icemlab bench --json`` run: the figures scripts read are present and consistent."""
+    assert (
+        main(
+            ["bench", "--tasks", "point_reach", "--budgets", "20", "40", "--steps", "2", "--threads", "2"]
+            + ["--no-service", "--json"]
+        )
+        == 0
+    )
+    results = json.loads(capsys.readouterr().out)
+    assert results["threads"] == 2 and "service" not in results
+    entries = results["tasks"]["point_reach"]
+    assert [e["budget"] for e in entries] == [20, 40]
+    for e in entries:
+        assert e["cores_used"] == 2
+        assert e["planner_physics_steps_per_second"] > 0 and e["raw_physics_steps_per_second"] > 0
+        assert 0 < e["ratio"] < 10 and 0 < e["rollouts_only_ratio"] < 10
+        assert e["ratio_quartiles"][0] <= e["ratio"] <= e["ratio_quartiles"][1]
+        assert e["thesis_seconds_per_step_1_thread"] is None  # no published figure for the test task
