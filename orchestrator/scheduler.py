@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from orchestrator import report
+from orchestrator.interrupt import InterruptRequest
 from orchestrator.pool import SimulationPool
 from orchestrator.sweep import LoadedSweep, Trial
 from orchestrator.tracking import FAILED, FINISHED, KILLED, Tracker, TrialRun
@@ -188,7 +189,10 @@ class SweepScheduler:
             skipped = len(self.loaded.trials) - len(pending)
             cpus = ray.cluster_resources().get("CPU", 1)
             threads, concurrent = self._layout(cpus, len(pending))
-            return self._drive(parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far)
+            with InterruptRequest() as interrupt:
+                return self._drive(
+                    parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far, interrupt
+                )
         except KeyboardInterrupt:
             if parent_id is not None:
                 self._abort(parent_id)
@@ -197,7 +201,7 @@ class SweepScheduler:
             if started_ray:
                 ray.shutdown()
 
-    def _drive(self, parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far):
+    def _drive(self, parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far, interrupt):
         import ray
 
         queue = list(pending)
@@ -212,6 +216,7 @@ class SweepScheduler:
         finished_steps = 0
 
         while queue or self._active:
+            interrupt.raise_if_requested()
             while queue and len(self._active) < concurrent:
                 trial = queue.pop(0)
                 attempts_so_far[trial.key] = attempts_so_far.get(trial.key, 0) + 1
@@ -222,6 +227,7 @@ class SweepScheduler:
 
             refs = [a.episode_ref for a in self._active]
             ready, _ = ray.wait(refs, num_returns=1, timeout=PROGRESS_POLL_SECONDS)
+            interrupt.raise_if_requested()
             for ref in ready:
                 active = next(a for a in self._active if a.episode_ref == ref)
                 try:
