@@ -281,6 +281,8 @@ def cmd_ui(args) -> int:
         "1",
     ]
     print(f"MLflow dashboard for {uri} at http://{args.host}:{args.port} (Ctrl-C stops it)", file=sys.stderr)
+    # MLflow 3 keeps its sidebar mode in the browser and starts in GenAI mode for every experiment.
+    print("In the sidebar, switch 'GenAI' to 'Model training' once for the runs and metric charts.", file=sys.stderr)
     try:
         return subprocess.call(command, env=env)
     except KeyboardInterrupt:
