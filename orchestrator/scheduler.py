@@ -343,17 +343,17 @@ class SweepScheduler:
             except Exception:  # already gone
                 pass
 
-    def _record_episode(self, active: ActiveTrial, report_: EpisodeReport) -> None:
-        active.reports.append(report_)
-        episode = report_.result
+    def _record_episode(self, active: ActiveTrial, episode_report: EpisodeReport) -> None:
+        active.reports.append(episode_report)
+        episode = episode_report.result
         offset = sum(len(r.result.rewards) for r in active.reports[:-1])
         per_episode = {
             "episode_return": episode.episode_return,
             "planning_seconds_per_step": float(episode.planning_seconds.mean()),
             "simulated_steps_per_second": episode.simulated_steps_per_second,
             "physics_steps_per_second": episode.physics_steps_per_second,
-            "episode_seconds": report_.episode_seconds,
-            "simulation_worker_restarts": report_.worker_restarts,
+            "episode_seconds": episode_report.episode_seconds,
+            "simulation_worker_restarts": episode_report.worker_restarts,
         }
         if episode.success is not None:
             per_episode["success"] = float(episode.success)
@@ -365,13 +365,13 @@ class SweepScheduler:
             "step/trajectories": episode.trajectories,
             "step/best_cost": episode.best_costs,
         }
-        self.tracker.log_episode(active.run_id, report_.episode, offset, per_step, per_episode)
+        self.tracker.log_episode(active.run_id, episode_report.episode, offset, per_step, per_episode)
         figure = report.episode_figure(
-            f"{trial_label(active.trial)} episode {report_.episode} (return {episode.episode_return:.1f})",
+            f"{trial_label(active.trial)} episode {episode_report.episode} (return {episode.episode_return:.1f})",
             episode.rewards,
             episode.planning_seconds,
         )
-        self.tracker.log_figure(active.run_id, figure, f"episodes/episode_{report_.episode:03d}.png")
+        self.tracker.log_figure(active.run_id, figure, f"episodes/episode_{episode_report.episode:03d}.png")
         report.close(figure)
 
     def _finish_trial(self, active: ActiveTrial) -> report.TrialResult:

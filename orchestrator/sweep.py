@@ -14,6 +14,7 @@ import hashlib
 import itertools
 import json
 import math
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
@@ -294,12 +295,8 @@ def parameter_path_problem(path: str) -> str | None:
             return "sweep 'algorithm' (top level), not planner.algorithm"
         if field in PLANNER_FIELDS:
             return None
-        close = difflib.get_close_matches(field, PLANNER_FIELDS, n=1)
-        hint = f" (did you mean 'planner.{close[0]}'?)" if close else ""
-        return f"unknown planner field {field!r}{hint}"
-    candidates = list(TOP_LEVEL_PATHS) + [f"planner.{f}" for f in PLANNER_FIELDS]
-    close = difflib.get_close_matches(path, candidates, n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
+        return f"unknown planner field {field!r}{_closest_hint(field, PLANNER_FIELDS, 'planner.')}"
+    hint = _closest_hint(path, list(TOP_LEVEL_PATHS) + [f"planner.{f}" for f in PLANNER_FIELDS])
     return (
         f"unknown parameter path {path!r}{hint}; "
         "sweepable: task, algorithm, episodes, max_steps, planner.<field>, task_options.<option>"
@@ -326,6 +323,12 @@ def _node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int:
     return line
 
 
+def _closest_hint(word: str, candidates: Iterable[str], prefix: str = "") -> str:
+    """' (did you mean 'X'?)' for the candidate closest to ``word``, or ''."""
+    close = difflib.get_close_matches(word, list(candidates), n=1)
+    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
+
+
 def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str:
     """A hint for an unknown key, from the fields of the model the key sits in."""
     for part in loc[:-1]:
@@ -335,8 +338,7 @@ def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str
             model = annotation
         else:
             return ""
-    close = difflib.get_close_matches(key, list(model.model_fields), n=1)
-    return f" (did you mean {close[0]!r}?)" if close else ""
+    return _closest_hint(key, model.model_fields)
 
 
 def _problems_from(error: ValidationError, file: str, root: yaml.Node | None, prefix=(), line_of=None):
@@ -509,9 +511,9 @@ def _resolve_trial(config, sources, file, root, problems) -> TrialConfig | None:
             path = ".".join([prefix, *map(str, item["loc"])] if prefix else map(str, item["loc"])) or prefix
             message = item["msg"].removeprefix("Value error, ")
             if item["type"] == "extra_forbidden" and fields is not None:
-                close = difflib.get_close_matches(str(item["loc"][-1]), fields, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                message = f"{task} has no option {item['loc'][-1]!r}{hint}; its options: {', '.join(fields) or 'none'}"
+                option = str(item["loc"][-1])
+                hint = _closest_hint(option, fields)
+                message = f"{task} has no option {option!r}{hint}; its options: {', '.join(fields) or 'none'}"
             problems.append(SweepProblem(file, blame(path), path, message))
 
     try:
