@@ -8,25 +8,27 @@
   planner / (raw x threads) is the share of the machine's physics rate that
   planning achieves; the same batches re-simulated by the planner's thread
   pool alone show how much of the gap is the machine's multi-thread scaling;
-* service: seconds per environment step through the service (a TrialRunner
-  actor with its SimulationPool, as ``icemlab run`` lays it out) against the
-  same MPC loop in-process, and with one remote SimulationWorker actor.
+* service: seconds per environment step of an MPC trial through the service
+  (its actor group as ``icemlab run`` places it) against the same program
+  in-process, and with one remote simulation worker.
 
 Figures vary by tens of percent between runs on a shared machine; the ratios
-are measured back to back in one run for that reason.
+are measured back to back in one run for that reason. The MPC loop and the
+actor layout are the product's own (workers/mpc.py, orchestrator/placement.py).
 """
 
 from __future__ import annotations
 
 import resource
 import time
-from functools import partial
 from typing import Any
 
 import numpy as np
 
 from orchestrator.report import PUBLISHED_SECONDS_PER_STEP
-from workers.actors import TrialRunner
+from workers.actors import ProgramRunner
+from workers.methods import METHODS, MpcSettings, TrialSpec
+from workers.mpc import MpcEpisode, PlanningState
 from workers.planning import CEMPlanner, PlannerConfig
 from workers.rollout import BatchEvaluator, default_threads
 from workers.tasks import SimState, make_task
@@ -34,18 +36,22 @@ from workers.tasks import SimState, make_task
 HORIZON = 30
 SERVICE_TASK = "halfcheetah_running"
 SERVICE_BUDGET = 100
+QUICK = {"tasks": ["halfcheetah_running"], "budgets": [100, 300], "steps": 10, "service_steps": 30}
+"""The default measurement: about two minutes on two cores."""
+FULL = {"tasks": ["halfcheetah_running", "humanoid_standup"], "budgets": [100, 300], "steps": 20, "service_steps": 60}
+"""``--full``: the figures of the README's speed table, about ten minutes on two cores."""
 
 
 class RecordingEvaluator:
-    """Passes cost requests to an evaluator and keeps every batch it was asked for."""
+    """Passes cost requests to a batch evaluator and keeps every batch it was asked for."""
 
     def __init__(self, evaluator: BatchEvaluator):
         self.evaluator = evaluator
         self.batches: list[tuple[SimState, np.ndarray]] = []
 
-    def costs(self, state: SimState, actions: np.ndarray) -> np.ndarray:
-        self.batches.append((state, actions.copy()))
-        return self.evaluator.costs(state, actions)
+    def evaluate(self, state: PlanningState, actions: np.ndarray) -> np.ndarray:
+        self.batches.append((state.sim, actions.copy()))
+        return self.evaluator.costs(state.sim, actions)
 
 
 def resimulate(evaluator: BatchEvaluator, batches: list[tuple[SimState, np.ndarray]]) -> tuple[int, float]:
@@ -65,7 +71,7 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> di
     Every MPC step is measured three times back to back, so that the slow
     phases of a shared machine hit all three alike:
 
-    * planner: ``planner.plan`` with all threads (sampling, rollouts, costs, CEM updates);
+    * planner: the planner's step with all threads (sampling, rollouts, costs, CEM updates);
     * raw: the same states and action sequences stepped by native mj_step
       loops on the calling thread (mujoco.rollout, nthread=0), so that contacts
       and controls match what the planner simulated;
@@ -82,27 +88,27 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> di
     model = task.build_planning_model(env)
     evaluator = BatchEvaluator(task, model, threads)
     single = BatchEvaluator(task, model, threads=0)
-    planner = CEMPlanner(config, task.action_dim, seed=0)
+    recorder = RecordingEvaluator(evaluator)
+    episode = MpcEpisode(task, env, CEMPlanner(config, task.action_dim, seed=0), recorder, seed=0, steps=steps)
     totals = {"planner": [0, 0.0], "raw": [0, 0.0], "rollouts": [0, 0.0]}
     ratios, scaling = [], []
+
+    def measure(record) -> None:
+        measured = {
+            "planner": (record.trajectories * HORIZON * task.frame_skip, record.planning_seconds),
+            "raw": resimulate(single, recorder.batches),
+            "rollouts": resimulate(evaluator, recorder.batches),
+        }
+        recorder.batches.clear()
+        for key, (n, seconds) in measured.items():
+            totals[key][0] += n
+            totals[key][1] += seconds
+        rate = {key: n / seconds for key, (n, seconds) in measured.items()}
+        ratios.append(rate["planner"] / (rate["raw"] * threads))
+        scaling.append(rate["rollouts"] / (rate["raw"] * threads))
+
     try:
-        for t in range(steps):
-            recorder = RecordingEvaluator(evaluator)
-            state = task.capture(env, time_step=t)
-            started = time.perf_counter()
-            result = planner.plan(partial(recorder.costs, state))
-            measured = {
-                "planner": (result.trajectories * HORIZON * task.frame_skip, time.perf_counter() - started),
-                "raw": resimulate(single, recorder.batches),
-                "rollouts": resimulate(evaluator, recorder.batches),
-            }
-            for key, (n, seconds) in measured.items():
-                totals[key][0] += n
-                totals[key][1] += seconds
-            rate = {key: n / seconds for key, (n, seconds) in measured.items()}
-            ratios.append(rate["planner"] / (rate["raw"] * threads))
-            scaling.append(rate["rollouts"] / (rate["raw"] * threads))
-            task.step_env(env, result.action)
+        episode.run(on_step=measure)
     finally:
         evaluator.close()
         single.close()
@@ -125,65 +131,76 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> di
     }
 
 
+def _mpc_trial(steps: int) -> TrialSpec:
+    settings = MpcSettings(planner=PlannerConfig(budget=SERVICE_BUDGET, horizon=HORIZON), max_steps=steps, round_steps=steps)
+    settings = METHODS["mpc"].resolve(settings, make_task(SERVICE_TASK))
+    return TrialSpec("mpc", SERVICE_TASK, settings, 0)
+
+
+def _seconds_per_step(report) -> float:
+    return float(np.mean(report.series["step/planning_seconds"]))
+
+
 def service_figures(steps: int, threads: int) -> dict[str, Any]:
-    """Seconds per environment step in-process vs through Ray actors, same run."""
+    """Seconds per environment step in-process vs through the service's actor group, same run."""
     import ray
 
-    from orchestrator.pool import SimulationPool
+    from orchestrator.placement import TrialGroup
     from orchestrator.scheduler import connect_ray
 
-    task = make_task(SERVICE_TASK)
-    config = PlannerConfig(algorithm="icem", budget=SERVICE_BUDGET, horizon=HORIZON).resolved(task.colored_noise_beta)
-    in_process = TrialRunner(SERVICE_TASK, config, seed=0, max_steps=steps, threads=threads)
+    trial = _mpc_trial(steps)
+
+    def in_process() -> float:
+        runner = ProgramRunner(trial, {}, threads)
+        try:
+            return _seconds_per_step(runner.run_round(0)[0])
+        finally:
+            runner.close()
+
+    def through_service(unit: int, simulation_workers: int) -> tuple[float, float]:
+        group = TrialGroup(trial, unit, {"simulation": simulation_workers}, max_restarts=0)
+        try:
+            ray.get(group.ready())
+            runner = group.start()
+            report, _ = ray.get(runner.run_round.remote(0))
+            return _seconds_per_step(report), ray.get(runner.peak_memory_mb.remote())
+        finally:
+            group.teardown()
+
     started_ray = connect_ray(None, num_cpus=threads)
-    half = max(1, threads // 2)
     try:
-        # Default layout of `icemlab run`: the trial's runner with a co-located worker.
-        runner_actor = ray.remote(num_cpus=threads, max_concurrency=2)(TrialRunner)
-        service = runner_actor.remote(SERVICE_TASK, config, 0, SimulationPool(SERVICE_TASK, threads, []), steps)
-        local_s, service_s = [], []
+        local_s, service_s, split_local_s, split_s, memory = [], [], [], [], []
         for _ in range(3):  # alternate, so that machine noise hits both alike
-            local_s.append(in_process.run_episode(0).result.planning_seconds.mean())
-            service_s.append(ray.get(service.run_episode.remote(0)).result.planning_seconds.mean())
-        service_memory = ray.get(service.peak_memory_mb.remote())
-        ray.kill(service)  # frees its CPUs for the next layout
-        # Half the threads co-located, half in one remote SimulationWorker actor.
-        worker = ray.remote(num_cpus=half)(_simulation_worker_class()).remote(SERVICE_TASK, half)
-        split_pool = SimulationPool(SERVICE_TASK, half, [worker])
-        split = ray.remote(num_cpus=half, max_concurrency=2)(TrialRunner).remote(
-            SERVICE_TASK, config, 0, split_pool, steps
-        )
-        split_local_s, split_s = [], []
-        for _ in range(3):
-            split_local_s.append(in_process.run_episode(0).result.planning_seconds.mean())
-            split_s.append(ray.get(split.run_episode.remote(0)).result.planning_seconds.mean())
+            local_s.append(in_process())
+            seconds, peak = through_service(threads, 1)  # the default layout: one co-located worker
+            service_s.append(seconds)
+            memory.append(peak)
+        half = max(1, threads // 2)
+        for _ in range(3):  # half the CPUs co-located, half in one remote SimulationWorker
+            split_local_s.append(in_process())
+            split_s.append(through_service(half, 2)[0])
     finally:
-        in_process.evaluator.close()
         if started_ray:
             ray.shutdown()
-    local, through_service = float(np.median(local_s)), float(np.median(service_s))
-    split_local, through_split = float(np.median(split_local_s)), float(np.median(split_s))
+    local, service = float(np.median(local_s)), float(np.median(service_s))
+    split_local, split = float(np.median(split_local_s)), float(np.median(split_s))
     return {
         "task": SERVICE_TASK,
         "budget": SERVICE_BUDGET,
         "steps": steps,
         "in_process_seconds_per_step": local,
-        "service_seconds_per_step": through_service,
-        "ratio": through_service / local,
-        "overhead_percent": 100.0 * (through_service / local - 1.0),
-        "service_one_remote_worker_seconds_per_step": through_split,
-        "one_remote_worker_ratio": through_split / split_local,
-        "service_runner_peak_memory_mb": service_memory,
+        "service_seconds_per_step": service,
+        "ratio": service / local,
+        "overhead_percent": 100.0 * (service / local - 1.0),
+        "service_one_remote_worker_seconds_per_step": split,
+        "one_remote_worker_ratio": split / split_local,
+        "service_runner_peak_memory_mb": max(memory),
     }
 
 
-def _simulation_worker_class():
-    from workers.actors import SimulationWorker
-
-    return SimulationWorker
-
-
-def run_benchmark(tasks: list[str], budgets: list[int], steps: int, threads: int | None, service: bool = True):
+def run_benchmark(
+    tasks: list[str], budgets: list[int], steps: int, threads: int | None, service: bool = True, service_steps: int = 30
+) -> dict[str, Any]:
     """All figures of ``icemlab bench`` as one JSON-serialisable dict."""
     threads = threads or default_threads()
     results: dict[str, Any] = {"threads": threads, "horizon": HORIZON, "tasks": {}}
@@ -191,7 +208,7 @@ def run_benchmark(tasks: list[str], budgets: list[int], steps: int, threads: int
         results["tasks"][name] = [planner_figures(name, budget, steps, threads) for budget in budgets]
     results["in_process_peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if service:
-        results["service"] = service_figures(steps * 3, threads)
+        results["service"] = service_figures(service_steps, threads)
     return results
 
 

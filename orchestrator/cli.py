@@ -102,11 +102,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="planner speed vs raw MuJoCo, service vs in-process",
         description="Measure, in one run: raw single-thread mj_step throughput per task; iCEM planning "
         "throughput at each budget (horizon 30) and its ratio to raw x threads; seconds per environment "
-        "step next to the thesis's Table 2; and the service's overhead against in-process planning.",
+        "step next to the thesis's Table 2; and the service's overhead against in-process planning. "
+        "The default takes about two minutes on two cores; --full measures what the README's tables show "
+        "(about ten minutes).",
     )
-    bench.add_argument("--tasks", nargs="+", default=["halfcheetah_running", "humanoid_standup"])
-    bench.add_argument("--budgets", nargs="+", type=int, default=[100, 300])
-    bench.add_argument("--steps", type=int, default=20, help="MPC steps measured per task and budget")
+    bench.add_argument("--full", action="store_true", help="HalfCheetah and Humanoid, 20 steps per budget")
+    bench.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: halfcheetah_running)")
+    bench.add_argument("--budgets", nargs="+", type=int, default=None, help="budgets (default: 100 300)")
+    bench.add_argument("--steps", type=int, default=None, help="MPC steps measured per task and budget (default 10)")
     bench.add_argument("--threads", type=int, default=None, help="rollout threads (default: all CPUs)")
     bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (no Ray)")
     bench.add_argument("--json", action="store_true", help="print the figures as one JSON document")
@@ -138,7 +141,8 @@ def cmd_validate(args) -> int:
     if not args.quiet:
         print(f"{args.sweep}: valid, {len(loaded.trials)} trial(s)")
         for trial in loaded.trials:
-            swept = ", ".join(f"{k}={v}" for k, v in trial.overrides.items())
+            shown = ({"variant": trial.variant} if trial.variant else {}) | trial.overrides
+            swept = ", ".join(f"{k}={v}" for k, v in shown.items())
             print(f"  {trial.key}  seed {trial.config.seed}  {swept}")
     return 0
 
@@ -146,21 +150,22 @@ def cmd_validate(args) -> int:
 def cmd_run(args) -> int:
     loaded = _load(args.sweep)
     from orchestrator.progress import ProgressDisplay
-    from orchestrator.scheduler import SweepScheduler
-    from orchestrator.tracking import Tracker
+    from orchestrator.scheduler import ResourceError, SweepScheduler
+    from orchestrator.tracking import KILLED, RUNNING, Tracker
 
     tracker = Tracker(args.tracking_uri)
     experiment = loaded.sweep.tracking.experiment or loaded.sweep.name
     previous = None if args.resume else tracker.find_sweep_run(experiment, loaded.sweep.name)
-    if previous is not None and previous.info.status in ("RUNNING", "KILLED"):
+    if previous is not None and previous.status in (RUNNING, KILLED):
         print(
-            f"icemlab: note: the last run of {loaded.sweep.name} ({previous.info.run_id}) did not finish; "
+            f"icemlab: note: the last run of {loaded.sweep.name} ({previous.run_id}) did not finish; "
             "this starts a new one. `--resume` would continue it instead.",
             file=sys.stderr,
         )
     display = None if args.quiet else ProgressDisplay()
     print(
-        f"icemlab: running {loaded.sweep.name} ({len(loaded.trials)} trials), tracking at {tracker.uri}",
+        f"icemlab: running {loaded.sweep.name} ({len(loaded.trials)} trials, method {loaded.sweep.method}), "
+        f"tracking at {tracker.uri}",
         file=sys.stderr,
     )
     scheduler = SweepScheduler(
@@ -171,6 +176,9 @@ def cmd_run(args) -> int:
     except ConnectionError as error:
         print(f"icemlab: {error}", file=sys.stderr)
         return 1
+    except ResourceError as error:
+        print(f"icemlab: {error}; nothing was started", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         if display:
             display.close()
@@ -188,16 +196,18 @@ def cmd_run(args) -> int:
         f"Parent run {outcome.parent_run_id}; see `icemlab ui` (tracking URI {tracker.uri}).",
         file=sys.stderr,
     )
+    if outcome.failed:
+        print(f"icemlab: see why with: icemlab status {args.sweep}", file=sys.stderr)
     return 1 if outcome.failed else 0
 
 
-def _sweep_name(argument: str) -> tuple[str, str | None]:
-    """(sweep name, experiment) from a file path or a plain name."""
+def _sweep_name(argument: str):
+    """(sweep name, experiment, loaded sweep or None) from a file path or a plain name."""
     path = Path(argument)
     if path.suffix in (".yaml", ".yml") or path.exists():
         loaded = _load(path)
-        return loaded.sweep.name, loaded.sweep.tracking.experiment or loaded.sweep.name
-    return argument, argument
+        return loaded.sweep.name, loaded.sweep.tracking.experiment or loaded.sweep.name, loaded
+    return argument, argument, None
 
 
 def cmd_status(args) -> int:
@@ -209,55 +219,56 @@ def cmd_status(args) -> int:
         if not sweeps:
             print(f"no sweeps in {tracker.uri}; start one with: icemlab run sweeps/quickstart.yaml")
             return 0
-        for run in sweeps:
-            children = tracker.trial_runs(run.info.run_id)
-            current = [c for c in children if not c.superseded]
-            counts = {s: sum(c.status == s for c in current) for s in ("FINISHED", "RUNNING", "FAILED", "KILLED")}
+        for sweep in sweeps:
+            children = tracker.trial_runs(sweep.run_id)
+            counts = {s: sum(c.status == s for c in children) for s in ("FINISHED", "RUNNING", "FAILED", "KILLED")}
             print(
-                f"{run.data.tags.get('icemlab.sweep', '?'):24s} {run.info.status:9s} run {run.info.run_id}  "
+                f"{sweep.name:24s} {sweep.status:9s} run {sweep.run_id}  "
                 + "  ".join(f"{k.lower()} {v}" for k, v in counts.items())
             )
         return 0
-    name, experiment = _sweep_name(args.sweep)
+    name, experiment, _ = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name)
     if parent is None:
         print(f"sweep {name!r} has not run in {tracker.uri}")
         return 1
-    print(f"sweep {name}: {parent.info.status}, parent run {parent.info.run_id}")
-    for child in sorted(tracker.trial_runs(parent.info.run_id), key=lambda c: c.run_id):
-        if child.superseded:
-            continue
+    print(f"sweep {name}: {parent.status}, parent run {parent.run_id}")
+    for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
+        rounds = child.tags.get("icemlab.rounds", "0")
         figure = child.metrics.get("mean_return")
-        error = child.tags.get("icemlab.error", "").splitlines()[0:1]
+        shown = "" if figure is None else f"return {figure:.1f}"
         print(
-            f"  {child.trial_key}  {child.status:9s} {child.tags.get('mlflow.runName', ''):40s} "
-            f"{'' if figure is None else f'return {figure:.1f}'} {error[0] if error else ''}"
+            f"  {child.trial_key}  {child.status:9s} {child.name:44s} rounds {rounds:>4s}  "
+            f"attempts {child.attempts}  {shown}"
         )
+        if child.error:
+            print(f"      {child.error_class or 'error'}: {child.error.strip().splitlines()[-1][:300]}")
     return 0
 
 
 def cmd_report(args) -> int:
     from orchestrator import report
-    from orchestrator.scheduler import trial_result_from_run
     from orchestrator.tracking import FINISHED, Tracker
 
     tracker = Tracker(args.tracking_uri)
-    name, experiment = _sweep_name(args.sweep)
+    name, experiment, loaded = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name)
     if parent is None:
         print(f"sweep {name!r} has not run in {tracker.uri}; run it with: icemlab run SWEEP.yaml", file=sys.stderr)
         return 1
-    runs = [r for r in tracker.trial_runs(parent.info.run_id) if r.status == FINISHED and not r.superseded]
-    groups = report.summarize(trial_result_from_run(r) for r in runs)
-    print(report.format_table(groups))
+    runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
+    if loaded is not None:
+        metric, mode = loaded.sweep.metric_name(), loaded.sweep.metric.mode
+    else:
+        from workers.methods import METHODS
+
+        method = runs[0].params.get("method", "mpc") if runs else "mpc"
+        metric, mode = next(iter(METHODS[method].metrics)), "max"
+    summary = report.summarize(runs, metric, mode)
+    print(report.format_table(summary))
     output = args.output or Path("reports") / name
-    output.mkdir(parents=True, exist_ok=True)
-    (output / "summary.csv").write_text(report.to_csv(groups))
-    if groups:
-        figure = report.budget_figure(groups)
-        figure.savefig(output / "budget_curve.png", dpi=110)
-        report.close(figure)
-    print(f"\nwrote {output}/summary.csv and {output}/budget_curve.png", file=sys.stderr)
+    written = report.write_files(summary, output)
+    print(f"\nwrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     return 0
 
 
@@ -290,9 +301,20 @@ def cmd_ui(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from orchestrator.bench import print_report, run_benchmark
+    from orchestrator.bench import FULL, QUICK, print_report, run_benchmark
 
-    results = run_benchmark(args.tasks, args.budgets, args.steps, args.threads, service=not args.no_service)
+    plan = dict(FULL if args.full else QUICK)
+    for key in ("tasks", "budgets", "steps"):
+        if getattr(args, key) is not None:
+            plan[key] = getattr(args, key)
+    results = run_benchmark(
+        plan["tasks"],
+        plan["budgets"],
+        plan["steps"],
+        args.threads,
+        service=not args.no_service,
+        service_steps=plan["service_steps"],
+    )
     if args.json:
         print(json.dumps(results, indent=2))
     else:

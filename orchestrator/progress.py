@@ -19,14 +19,20 @@ def _clock(seconds: float | None) -> str:
     return f"{hours}:{minutes:02d}:{seconds:02d}" if hours else f"{minutes}:{seconds:02d}"
 
 
+def _trial_progress(label: str, progress: dict) -> str:
+    phase = progress.get("phase")
+    if phase == "placing":
+        return f"{label} waiting for CPUs"
+    if phase == "restoring":
+        return f"{label} restoring round {progress['round']}"
+    text = progress.get("text")
+    where = f"round {progress['round'] + 1}/{progress['rounds']}"
+    return f"{label} {where}" + (f" {text}" if text and text != "starting" else "")
+
+
 def describe(state: SweepState) -> str:
-    """One line: counts, the running trials' episode and step, elapsed time and ETA."""
-    running = "; ".join(
-        f"{label} ep {(p.get('episode') or 0) + 1}/{episodes} step {p['step']}/{p['steps']}"
-        if p.get("episode") is not None
-        else f"{label} starting"
-        for label, episodes, p in state.running
-    )
+    """One line: counts, each running trial's round and place within it, elapsed time and ETA."""
+    running = "; ".join(_trial_progress(label, progress) for label, progress in state.running)
     counts = f"{state.name}: {state.done}/{state.total} done, {len(state.running)} running, {state.failed} failed"
     timing = f"elapsed {_clock(state.elapsed)}, ETA {_clock(state.eta)}"
     return f"{counts} | {running or 'idle'} | {timing}"

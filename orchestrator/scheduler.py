@@ -1,41 +1,46 @@
-"""The Ray driver: places trials and their simulation workers, bounded concurrency, retries.
+"""The Ray driver: places trial groups, runs their rounds, survives faults, logs everything.
 
 ``ray.init()`` starts a local single-node Ray by default; an address connects
-to an existing cluster. Every trial runs in a TrialRunner actor whose MPC loop
-takes its trajectory-batch costs from a SimulationPool (a co-located
-SimulationWorker plus ``simulation_workers - 1`` SimulationWorker actors).
-The driver is the only process that writes to MLflow: runners send each
-finished episode back and the driver logs it.
+to an existing cluster. Each trial runs as a group of actors placed at once
+(orchestrator/placement.py): a ProgramRunner hosting the trial's program and
+the workers of the roles the program declared. The driver asks the runner for
+one round at a time; each round comes back with its report and a checkpoint,
+and the driver (the only process that writes to MLflow) logs the report and
+stores the checkpoint in the trial's run. Nothing here knows any method.
 
-Faults: a SimulationWorker actor that dies is restarted by Ray and its call
-retried (the call is a pure function of state and actions), so the episode
-completes and the restart is counted in the trial's metrics. A trial that
-raises (or whose runner dies) ends its attempt FAILED with the error in the
-run and is retried up to ``retries`` times; the sweep goes on. Ctrl-C kills
+Faults (orchestrator/failures.py): a lost process (an actor, process or node
+gone) restarts the trial's group from its last checkpoint, after a backoff,
+up to ``max_lost_processes`` times; an error raised by the method's code is
+retried from the last checkpoint up to ``retries`` times, not again when it
+repeats identically; a checkpoint the program refuses is skipped for the one
+before it. Every attempt's end is recorded in the trial's run. Ctrl-C stops
 the running trials and marks their runs, and the sweep's, KILLED.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-import numpy as np
-
 from orchestrator import report
+from orchestrator.failures import BAD_CHECKPOINT, CODE_ERROR, LOST_PROCESS, Failure, classify
 from orchestrator.interrupt import InterruptRequest
-from orchestrator.pool import SimulationPool
+from orchestrator.placement import TrialGroup
 from orchestrator.sweep import LoadedSweep, Trial
 from orchestrator.tracking import FAILED, FINISHED, KILLED, Tracker, TrialRun
-from workers import code_fingerprint
-from workers.actors import EpisodeReport, SimulationWorker, TrialRunner
+from workers.actors import ProgramRunner
+from workers.methods import METHODS
 
-PROGRESS_POLL_SECONDS = 0.5
+POLL_SECONDS = 0.5
+BACKOFF_SECONDS = (1.0, 2.0, 5.0, 10.0, 30.0)
+"""Wait before restarting a trial after its n-th lost process (the last value repeats)."""
+
+log = logging.getLogger(__name__)
 
 
 def icemlab_version() -> str:
@@ -47,21 +52,52 @@ def icemlab_version() -> str:
         return "dev"
 
 
+class ResourceError(ValueError):
+    """A trial that needs more CPUs than the cluster has: it could never be placed."""
+
+
+def trial_label(trial: Trial) -> str:
+    """A short name for a trial: task, the method's labels, variant and seed."""
+    config = trial.config
+    labels = METHODS[config.method].labels(config.spec())
+    parts = [config.task, *labels.values()]
+    if trial.variant:
+        parts.append(trial.variant)
+    return "/".join(parts) + f"/s{config.seed}"
+
+
 @dataclass
-class ActiveTrial:
-    """A trial attempt in flight."""
+class TrialState:
+    """A trial across its attempts."""
 
     trial: Trial
-    run_id: str
-    attempt: int
-    runner: Any
-    workers: list[Any]
-    episode: int = 0
-    episode_ref: Any = None
-    progress_ref: Any = None
+    total_rounds: int
+    run_id: str | None = None
+    attempts: int = 0
+    retries_left: int = 0
+    lost_left: int = 0
+    lost: int = 0
+    last_signature: str | None = None
+    bad_checkpoints: set[int] = field(default_factory=set)
+    logged_rounds: set[int] = field(default_factory=set)
+    rounds_done: int = 0
+    not_before: float = 0.0
+
+
+@dataclass
+class Attempt:
+    """One attempt of a trial: its actor group and the call in flight."""
+
+    state: TrialState
+    group: TrialGroup
+    phase: str = "placing"
+    """placing (waiting for the group's CPUs), restoring (from a checkpoint) or running (a round)."""
+    ref: Any = None
+    round_index: int = 0
+    checkpoint_round: int | None = None
     progress: dict[str, Any] = field(default_factory=dict)
-    started: float = field(default_factory=time.monotonic)
-    reports: list[EpisodeReport] = field(default_factory=list)
+    progress_ref: Any = None
+    rss_mb: float | None = None
 
 
 class SweepState(NamedTuple):
@@ -71,8 +107,8 @@ class SweepState(NamedTuple):
     total: int
     done: int
     failed: int
-    running: list[tuple[str, int, dict[str, Any]]]
-    """(trial label, episodes of the trial, runner progress) per running trial."""
+    running: list[tuple[str, dict[str, Any]]]
+    """(trial label, progress: round, rounds, fraction, text) per running trial."""
     elapsed: float
     eta: float | None
 
@@ -86,13 +122,12 @@ class SweepOutcome(NamedTuple):
     table: str
 
 
-def trial_label(trial: Trial) -> str:
-    planner = trial.config.planner
-    return f"{trial.config.task}/{planner.algorithm}/b{planner.budget}/s{trial.config.seed}"
-
-
 def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
-    """Connect to a cluster at ``address`` or start a local one; True if this call started Ray."""
+    """Connect to a cluster at ``address`` or start a local one; True if this call started Ray.
+
+    A local Ray keeps its token authentication (Ray's default, never switched
+    off here) and starts no dashboard.
+    """
     import ray
 
     if ray.is_initialized():
@@ -125,10 +160,11 @@ class SweepScheduler:
         resume: bool = False,
         max_concurrent: int | None = None,
         display: Callable[[SweepState], None] | None = None,
-        runner_class: type = TrialRunner,
+        runner_class: type = ProgramRunner,
     ):
         self.loaded = loaded
         self.sweep = loaded.sweep
+        self.program = self.sweep.program
         self.tracker = tracker
         self.address = address
         self.resume = resume
@@ -136,15 +172,16 @@ class SweepScheduler:
         self.display = display
         self.runner_class = runner_class
         self.experiment = self.sweep.tracking.experiment or self.sweep.name
+        self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
+        self._active: list[Attempt] = []
 
     # -------------------------------------------------------------- plan
     def _parent_run(self) -> tuple[str, list[TrialRun]]:
         if self.resume:
             previous = self.tracker.find_sweep_run(self.experiment, self.sweep.name)
             if previous is not None:
-                run_id = previous.info.run_id
-                self.tracker.reopen_sweep(run_id, self.loaded.file_hash)
-                return run_id, self.tracker.trial_runs(run_id)
+                self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash)
+                return previous.run_id, self.tracker.trial_runs(previous.run_id)
         run_id = self.tracker.start_sweep(
             self.experiment,
             self.sweep.name,
@@ -155,17 +192,29 @@ class SweepScheduler:
         )
         return run_id, []
 
-    def _layout(self, cpus: float, pending: int) -> tuple[int, int]:
-        """(threads per worker, concurrent trials) for the cluster's CPUs."""
-        workers = self.sweep.resources.simulation_workers
+    def group_cpus(self, unit: int) -> float:
+        """CPUs one trial's group holds when a unit of work gets ``unit`` CPUs."""
+        spec = self.loaded.trials[0].config.spec()
+        roles = self.program.roles_for(spec, unit, self.counts)
+        return self.program.runner_cpus(spec, unit) + sum(r.cpus * r.count for r in roles)
+
+    def layout(self, cpus: float, pending: int) -> tuple[int, int]:
+        """(CPUs per unit of work, concurrent trials) for a cluster with ``cpus`` CPUs."""
         threads = self.sweep.resources.threads_per_worker
         if threads is None:
             # Enough trials to use every CPU once, the rest of the CPUs as threads.
-            concurrent = max(1, min(pending, int(cpus) // workers))
+            concurrent = max(1, min(pending, int(cpus // self.group_cpus(1))))
             if self.max_concurrent:
                 concurrent = min(concurrent, self.max_concurrent)
-            threads = max(1, int(cpus) // (concurrent * workers))
-        concurrent = max(1, int(cpus) // (threads * workers))
+            threads = max(1, int(cpus // (concurrent * self.group_cpus(1))))
+        need = self.group_cpus(threads)
+        if need > cpus:
+            raise ResourceError(
+                f"a trial of this sweep needs {need:g} CPUs (its runner and the workers of its roles), but the "
+                f"Ray cluster has {cpus:g}; lower resources.simulation_workers, resources.workers or "
+                "resources.threads_per_worker, or add nodes"
+            )
+        concurrent = max(1, int(cpus // need))
         if self.max_concurrent:
             concurrent = min(concurrent, self.max_concurrent)
         return threads, concurrent
@@ -177,297 +226,260 @@ class SweepScheduler:
         started_ray = connect_ray(self.address)  # before any MLflow run exists: a bad address leaves no trace
         parent_id = None
         try:
-            parent_id, previous_runs = self._parent_run()
-            finished_keys = {r.trial_key for r in previous_runs if r.status == FINISHED and not r.superseded}
-            open_attempts: dict[str, list[TrialRun]] = {}
-            attempts_so_far: dict[str, int] = {}
-            for run in previous_runs:
-                attempts_so_far[run.trial_key] = attempts_so_far.get(run.trial_key, 0) + 1
-                if run.trial_key not in finished_keys and not run.superseded:
-                    open_attempts.setdefault(run.trial_key, []).append(run)
-            pending = [t for t in self.loaded.trials if t.key not in finished_keys]
-            skipped = len(self.loaded.trials) - len(pending)
             cpus = ray.cluster_resources().get("CPU", 1)
-            threads, concurrent = self._layout(cpus, len(pending))
-            with InterruptRequest() as interrupt:
-                return self._drive(
-                    parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far, interrupt
+            self.layout(cpus, 1)  # a sweep that can never be placed is refused before anything is logged
+            parent_id, previous_runs = self._parent_run()
+            self._parent_id = parent_id
+            by_key: dict[str, TrialRun] = {}
+            for run in previous_runs:
+                if by_key.get(run.trial_key) is None or by_key[run.trial_key].status != FINISHED:
+                    by_key[run.trial_key] = run
+            states = []
+            for trial in self.loaded.trials:
+                previous = by_key.get(trial.key)
+                if previous is not None and previous.status == FINISHED:
+                    continue
+                state = TrialState(
+                    trial,
+                    self.program.planned_rounds(trial.config.spec()),
+                    retries_left=self.sweep.retries,
+                    lost_left=self.sweep.max_lost_processes,
                 )
+                if previous is not None:
+                    state.run_id = previous.run_id
+                    state.attempts = previous.attempts
+                    state.logged_rounds = self.tracker.logged_rounds(previous.run_id)
+                    state.rounds_done = len(state.logged_rounds)
+                states.append(state)
+            skipped = len(self.loaded.trials) - len(states)
+            threads, concurrent = self.layout(cpus, len(states))
+            with InterruptRequest() as interrupt:
+                return self._drive(parent_id, states, skipped, threads, concurrent, interrupt)
         except KeyboardInterrupt:
             if parent_id is not None:
                 self._abort(parent_id)
             raise
         finally:
+            for attempt in list(self._active):
+                attempt.group.teardown()
             if started_ray:
                 ray.shutdown()
 
-    def _drive(self, parent_id, pending, skipped, threads, concurrent, open_attempts, attempts_so_far, interrupt):
+    def _drive(self, parent_id, states, skipped, threads, concurrent, interrupt) -> SweepOutcome:
         import ray
 
-        queue = list(pending)
-        retries_left = {t.key: self.sweep.retries for t in pending}
-        self._active: list[ActiveTrial] = []
-        self._parent_id = parent_id
-        results: list[report.TrialResult] = self._previous_results(parent_id)
+        queue = list(states)
         done = failed = 0
         started = time.monotonic()
         last_display = 0.0
-        total_steps = sum(self._trial_steps(t) for t in pending)
-        finished_steps = 0
+        total_rounds = sum(s.total_rounds for s in states)
+        rounds_at_start = sum(s.rounds_done for s in states)
+        self._threads = threads
 
         while queue or self._active:
             interrupt.raise_if_requested()
-            while queue and len(self._active) < concurrent:
-                trial = queue.pop(0)
-                attempts_so_far[trial.key] = attempts_so_far.get(trial.key, 0) + 1
-                active = self._launch(trial, threads, attempts_so_far[trial.key])
-                for stale in open_attempts.pop(trial.key, []):
-                    self.tracker.supersede(stale.run_id, active.run_id, KILLED)
-                self._active.append(active)
+            now = time.monotonic()
+            while len(self._active) < concurrent:
+                ready = [s for s in queue if s.not_before <= now]
+                if not ready:
+                    break
+                queue.remove(ready[0])
+                self._active.append(self._launch(ready[0]))
 
-            refs = [a.episode_ref for a in self._active]
-            ready, _ = ray.wait(refs, num_returns=1, timeout=PROGRESS_POLL_SECONDS)
+            refs = [a.ref for a in self._active]
+            finished_refs = ray.wait(refs, num_returns=1, timeout=POLL_SECONDS)[0] if refs else []
+            if not refs:
+                time.sleep(POLL_SECONDS)  # every pending trial is backing off
             interrupt.raise_if_requested()
-            for ref in ready:
-                active = next(a for a in self._active if a.episode_ref == ref)
+            for ref in finished_refs:
+                attempt = next(a for a in self._active if a.ref == ref)
                 try:
-                    episode = ray.get(ref)
-                except Exception as error:  # the trial raised or its runner died
-                    self._end_attempt(active)
-                    message = _error_text(error)
-                    if retries_left[active.trial.key] > 0:
-                        retries_left[active.trial.key] -= 1
-                        retry = self._launch(active.trial, threads, active.attempt + 1)
-                        self.tracker.end_trial(active.run_id, FAILED, error=message)
-                        self.tracker.supersede(active.run_id, retry.run_id, FAILED)
-                        self._active.append(retry)
+                    value = ray.get(ref)
+                except Exception as error:  # noqa: BLE001 - every failure is classified and recorded
+                    outcome = self._failed(attempt, classify(error, attempt.rss_mb))
+                    if outcome == "retry":
+                        queue.append(attempt.state)
                     else:
-                        self.tracker.end_trial(active.run_id, FAILED, error=message)
-                        total_steps -= self._trial_steps(active.trial)
                         failed += 1
                     continue
-                self._record_episode(active, episode)
-                if active.episode + 1 < active.trial.config.episodes:
-                    active.episode += 1
-                    active.episode_ref = active.runner.run_episode.remote(active.episode)
-                else:
-                    self._end_attempt(active)
-                    results.append(self._finish_trial(active))
-                    finished_steps += self._trial_steps(active.trial)
+                if self._advance(attempt, value):
                     done += 1
 
             self._poll_progress()
             now = time.monotonic()
-            if self.display is not None and (now - last_display >= PROGRESS_POLL_SECONDS or not self._active):
+            if self.display is not None and (now - last_display >= POLL_SECONDS or not self._active):
                 last_display = now
-                steps_done = finished_steps + sum(self._steps_done(a) for a in self._active)
-                rate = steps_done / max(now - started, 1e-9)
-                eta = (total_steps - steps_done) / rate if steps_done > 0 else None
+                rounds = sum(s.rounds_done for s in states) - rounds_at_start
+                rounds += sum(a.progress.get("fraction", 0.0) for a in self._active if a.phase == "running")
+                remaining = total_rounds - rounds_at_start - rounds
+                eta = remaining / (rounds / (now - started)) if rounds > 0 else None
                 self.display(
                     SweepState(
                         self.sweep.name,
                         len(self.loaded.trials),
                         skipped + done,
                         failed,
-                        [(trial_label(a.trial), a.trial.config.episodes, a.progress) for a in self._active],
+                        [(trial_label(a.state.trial), self._shown_progress(a)) for a in self._active],
                         now - started,
                         eta,
                     )
                 )
 
-        groups = report.summarize(results)
-        table = report.format_table(groups)
-        self._end_sweep(parent_id, groups, table, done + skipped, failed)
+        table = self.finish_sweep(parent_id, done + skipped, failed)
         return SweepOutcome(parent_id, done, failed, skipped, table)
 
     # ------------------------------------------------------------ trials
-    @staticmethod
-    def _trial_steps(trial: Trial) -> int:
-        """Environment steps a trial runs (for the ETA)."""
-        from workers.tasks import TASKS
-
-        length = trial.config.max_steps or TASKS[trial.config.task].episode_length
-        return trial.config.episodes * length
-
-    def _steps_done(self, active: ActiveTrial) -> int:
-        finished_episodes = sum(len(r.result.rewards) for r in active.reports)
-        in_episode = active.progress.get("step", 0) if active.progress.get("episode") == active.episode else 0
-        return finished_episodes + in_episode
-
-    def _launch(self, trial: Trial, threads: int, attempt: int) -> ActiveTrial:
-        import ray
-
-        config = trial.config
-        remote_count = self.sweep.resources.simulation_workers - 1
-        worker_actor = ray.remote(num_cpus=threads, max_restarts=3, max_task_retries=3)(SimulationWorker)
-        workers = [worker_actor.remote(config.task, threads, config.task_options) for _ in range(remote_count)]
-        pool = SimulationPool(config.task, threads, workers, config.task_options)
-        runner_actor = ray.remote(num_cpus=threads, max_concurrency=2, max_restarts=0)(self.runner_class)
-        runner = runner_actor.remote(
-            config.task,
-            config.planner,
-            config.seed,
-            pool,
-            config.max_steps,
-            expected_code=code_fingerprint(),
-            task_options=config.task_options,
-        )
-        run_id = self.tracker.start_trial(
-            self._parent_id,
-            trial.key,
-            name=f"{trial_label(trial)}#{trial.key[:6]}",
-            params=config.flat()
-            | {
-                "resources.threads_per_worker": threads,
+    def _launch(self, state: TrialState) -> Attempt:
+        trial, config = state.trial, state.trial.config
+        state.attempts += 1
+        if state.run_id is None:
+            spec = config.spec()
+            tags = {"task": config.task, "method": config.method, "seed": str(config.seed)}
+            tags |= METHODS[config.method].labels(spec)
+            if trial.variant:
+                tags["icemlab.variant"] = trial.variant
+            tags |= {f"icemlab.override.{k}": json.dumps(v) for k, v in trial.overrides.items()}
+            params = config.flat() | {
+                "resources.threads_per_worker": self._threads,
                 "resources.simulation_workers": self.sweep.resources.simulation_workers,
-            },
-            tags={
-                "task": config.task,
-                "algorithm": config.planner.algorithm,
-                "seed": str(config.seed),
-                "budget": str(config.planner.budget),
-            },
-            attempt=attempt,
+            }
+            if trial.variant:
+                params["variant"] = trial.variant
+            state.run_id = self.tracker.start_trial(
+                self._parent_id,
+                trial.key,
+                name=f"{trial_label(trial)}#{trial.key[:6]}",
+                params=params,
+                tags=tags,
+                artifacts={"trial.json": json.dumps(config.canonical(), indent=2, sort_keys=True)},
+            )
+        else:
+            self.tracker.reopen_trial(state.run_id, state.attempts)
+        group = TrialGroup(
+            config.spec(), self._threads, self.counts, self.sweep.max_lost_processes, runner_class=self.runner_class
         )
-        active = ActiveTrial(trial, run_id, attempt, runner, workers)
-        active.episode_ref = runner.run_episode.remote(0)
-        return active
+        return Attempt(state, group, "placing", group.ready())
 
-    def _end_attempt(self, active: ActiveTrial) -> None:
-        import ray
+    def _advance(self, attempt: Attempt, value: Any) -> bool:
+        """Move an attempt on after its call returned; True when its trial finished."""
+        state = attempt.state
+        if attempt.phase == "placing":
+            runner = attempt.group.start()
+            stored, notes = self.tracker.load_checkpoint(state.run_id, skip=state.bad_checkpoints)
+            for note in notes:
+                self.tracker.note(state.run_id, note)
+            if stored is not None:
+                attempt.phase, attempt.checkpoint_round = "restoring", stored.round_index
+                attempt.ref = runner.restore.remote(stored.data)
+            else:
+                attempt.phase, attempt.round_index = "running", 0
+                attempt.ref = runner.run_round.remote(0)
+            return False
+        if attempt.phase == "restoring":
+            attempt.phase, attempt.round_index = "running", int(value)
+            attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
+            return False
 
-        self._active.remove(active)
-        for actor in [active.runner, *active.workers]:
-            try:
-                ray.kill(actor)
-            except Exception:  # already gone
-                pass
+        round_report, data = value
+        if not round_report.done:
+            # The next round starts before this one is logged: logging overlaps with work.
+            attempt.round_index = round_report.index + 1
+            attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
+        if round_report.index not in state.logged_rounds:
+            self.tracker.log_round(
+                state.run_id,
+                round_report.index,
+                round_report.step,
+                round_report.metrics,
+                round_report.series,
+                round_report.series_start,
+                [(a.path, a.data) for a in round_report.artifacts],
+            )
+            state.logged_rounds.add(round_report.index)
+        self.tracker.save_checkpoint(state.run_id, round_report.index, data)
+        state.rounds_done = max(state.rounds_done, round_report.index + 1)
+        if not round_report.done:
+            return False
+        self.tracker.end_trial(state.run_id, FINISHED, round_report.summary)
+        state.rounds_done = state.total_rounds
+        self._end_attempt(attempt)
+        return True
 
-    def _record_episode(self, active: ActiveTrial, episode_report: EpisodeReport) -> None:
-        active.reports.append(episode_report)
-        episode = episode_report.result
-        offset = sum(len(r.result.rewards) for r in active.reports[:-1])
-        per_episode = {
-            "episode_return": episode.episode_return,
-            "planning_seconds_per_step": float(episode.planning_seconds.mean()),
-            "simulated_steps_per_second": episode.simulated_steps_per_second,
-            "physics_steps_per_second": episode.physics_steps_per_second,
-            "episode_seconds": episode_report.episode_seconds,
-            "simulation_worker_restarts": episode_report.worker_restarts,
-        }
-        if episode.success is not None:
-            per_episode["success"] = float(episode.success)
-            per_episode["goal_steps"] = float(episode.goal_steps)
-        per_step = {
-            "step/reward": episode.rewards,
-            "step/return": np.cumsum(episode.rewards),
-            "step/planning_seconds": episode.planning_seconds,
-            "step/trajectories": episode.trajectories,
-            "step/best_cost": episode.best_costs,
-        }
-        self.tracker.log_episode(active.run_id, episode_report.episode, offset, per_step, per_episode)
-        figure = report.episode_figure(
-            f"{trial_label(active.trial)} episode {episode_report.episode} (return {episode.episode_return:.1f})",
-            episode.rewards,
-            episode.planning_seconds,
-        )
-        self.tracker.log_figure(active.run_id, figure, f"episodes/episode_{episode_report.episode:03d}.png")
-        report.close(figure)
+    def _failed(self, attempt: Attempt, failure: Failure) -> str:
+        """Record a failed attempt and decide: "retry" (queued again) or "failed" (the trial is FAILED)."""
+        state = attempt.state
+        self._end_attempt(attempt)
+        repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
+        detail = f"the same error as an earlier attempt (see its file)" if repeat else failure.detail
+        self.tracker.record_failure(state.run_id, state.attempts, failure.kind, failure.cause, detail)
+        if failure.kind == BAD_CHECKPOINT and attempt.checkpoint_round is not None:
+            state.bad_checkpoints.add(attempt.checkpoint_round)
+            return "retry"
+        if failure.kind == LOST_PROCESS and state.lost_left > 0:
+            state.lost_left -= 1
+            state.not_before = time.monotonic() + BACKOFF_SECONDS[min(state.lost, len(BACKOFF_SECONDS) - 1)]
+            state.lost += 1
+            return "retry"
+        if failure.kind == CODE_ERROR and not repeat and state.retries_left > 0:
+            state.retries_left -= 1
+            state.last_signature = failure.signature
+            return "retry"
+        self.tracker.end_trial(state.run_id, FAILED)
+        return "failed"
 
-    def _finish_trial(self, active: ActiveTrial) -> report.TrialResult:
-        results = [r.result for r in active.reports]
-        successes = [float(r.success) for r in results if r.success is not None]
-        seconds = float(np.mean(np.concatenate([r.planning_seconds for r in results])))
-        summary = {
-            "mean_return": float(np.mean([r.episode_return for r in results])),
-            "mean_planning_seconds_per_step": seconds,
-        }
-        if successes:
-            summary["success_rate"] = float(np.mean(successes))
-        self.tracker.end_trial(active.run_id, FINISHED, summary)
-        config = active.trial.config
-        return report.TrialResult(
-            trial_key=active.trial.key,
-            task=config.task,
-            algorithm=config.planner.algorithm,
-            budget=config.planner.budget or 0,
-            seed=config.seed,
-            episode_return=summary["mean_return"],
-            success=summary.get("success_rate"),
-            seconds_per_step=seconds,
-        )
+    def _end_attempt(self, attempt: Attempt) -> None:
+        if attempt in self._active:
+            self._active.remove(attempt)
+        attempt.group.teardown()
 
-    def _previous_results(self, parent_id: str) -> list[report.TrialResult]:
-        """Trials finished before a resume, for the summary."""
-        results = []
-        for run in self.tracker.trial_runs(parent_id):
-            if run.status != FINISHED or run.superseded or "mean_return" not in run.metrics:
-                continue
-            results.append(trial_result_from_run(run))
-        return results
+    def _shown_progress(self, attempt: Attempt) -> dict[str, Any]:
+        state = attempt.state
+        shown = {"round": attempt.round_index, "rounds": state.total_rounds, "phase": attempt.phase}
+        if attempt.phase == "running":
+            shown |= {k: attempt.progress.get(k) for k in ("fraction", "text") if k in attempt.progress}
+        return shown
 
     def _poll_progress(self) -> None:
         import ray
 
-        for active in self._active:
-            if active.progress_ref is None:
-                active.progress_ref = active.runner.progress.remote()
-            ready, _ = ray.wait([active.progress_ref], timeout=0)
+        for attempt in self._active:
+            if attempt.phase != "running":
+                continue
+            if attempt.progress_ref is None:
+                attempt.progress_ref = attempt.group.runner.progress.remote()
+            ready, _ = ray.wait([attempt.progress_ref], timeout=0)
             if ready:
                 try:
-                    active.progress = ray.get(active.progress_ref)
-                except Exception:  # a dying runner; its episode reference reports why
+                    attempt.progress = ray.get(attempt.progress_ref)
+                    attempt.rss_mb = attempt.progress.get("rss_mb", attempt.rss_mb)
+                except Exception:  # a dying runner; its round reference reports why
                     pass
-                active.progress_ref = None
+                attempt.progress_ref = None
 
     # ------------------------------------------------------------- sweep
-    def _end_sweep(self, parent_id, groups, table, completed, failed) -> None:
+    def finish_sweep(self, parent_id: str, completed: int, failed: int) -> str:
+        """Summary table and plots of every finished trial of the parent run, on the parent run."""
         import tempfile
         from pathlib import Path
 
+        runs = [r for r in self.tracker.trial_runs(parent_id) if r.status == FINISHED]
+        summary = report.summarize(runs, self.sweep.metric_name(), self.sweep.metric.mode)
+        table = report.format_table(summary)
         with tempfile.TemporaryDirectory() as directory:
-            artifacts = []
-            (Path(directory) / "summary.txt").write_text(table + "\n")
-            (Path(directory) / "summary.csv").write_text(report.to_csv(groups))
-            artifacts += [Path(directory) / "summary.txt", Path(directory) / "summary.csv"]
-            if groups:
-                figure = report.budget_figure(groups, self.sweep.metric.name)
-                figure.savefig(Path(directory) / "budget_curve.png", dpi=110)
-                report.close(figure)
-                artifacts.append(Path(directory) / "budget_curve.png")
-            summary = {"trials_finished": completed, "trials_failed": failed}
-            self.tracker.end_sweep(parent_id, FINISHED, summary, {"icemlab.failed_trials": str(failed)}, artifacts)
+            artifacts = report.write_files(summary, Path(directory))
+            totals = {"trials_finished": completed, "trials_failed": failed}
+            self.tracker.end_sweep(parent_id, FINISHED, totals, failed_trials=failed, artifacts=artifacts)
+        return table
 
     def _abort(self, parent_id: str) -> None:
         """Ctrl-C: the running trials' runs and the sweep's end KILLED, then their actors are stopped."""
-        active = list(getattr(self, "_active", []))
-        for trial in active:
-            self.tracker.end_trial(trial.run_id, KILLED, error="interrupted (Ctrl-C)")
-        self.tracker.end_sweep(parent_id, KILLED, {}, {"icemlab.interrupted": "true"})
-        for trial in active:
+        active = list(self._active)
+        for attempt in active:
+            self.tracker.record_failure(attempt.state.run_id, attempt.state.attempts, "interrupted", "interrupted (Ctrl-C)", "")
+            self.tracker.end_trial(attempt.state.run_id, KILLED)
+        self.tracker.end_sweep(parent_id, KILLED, {}, interrupted=True)
+        for attempt in active:
             try:
-                self._end_attempt(trial)
+                self._end_attempt(attempt)
             except Exception:  # Ray itself may be going down with the same signal
                 pass
-
-
-def trial_result_from_run(run: TrialRun) -> report.TrialResult:
-    """A finished child run read back from MLflow, reduced for reports."""
-    budget = run.params.get("planner.budget", "None")
-    return report.TrialResult(
-        trial_key=run.trial_key,
-        task=run.params.get("task", "?"),
-        algorithm=run.params.get("planner.algorithm", "?"),
-        budget=0 if budget == "None" else int(budget),
-        seed=int(run.params.get("seed", "0")),
-        episode_return=run.metrics.get("mean_return", float("nan")),
-        success=run.metrics.get("success_rate"),
-        seconds_per_step=run.metrics.get("mean_planning_seconds_per_step", float("nan")),
-    )
-
-
-def _error_text(error: BaseException) -> str:
-    text = str(error)
-    if not text:
-        text = "".join(traceback.format_exception(error))
-    return text

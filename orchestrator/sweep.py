@@ -1,40 +1,50 @@
 """Sweep files: schema, YAML loading with located errors, expansion into trials.
 
-A sweep YAML names a task and an algorithm, a base configuration, the
-parameters to vary (grid ``values`` or random ``distribution`` draws over
-dotted paths such as ``planner.budget``) and the seeds. Loading validates the
-file and every concrete trial it expands to before anything runs; problems come
-back as :class:`SweepError` with one ``FILE:LINE: path: message`` per problem.
+A sweep YAML names a task and a method (``mpc`` by default: chapter 3's MPC
+episodes; the other chapters' methods as they are registered in
+workers/methods), the method's base settings, the parameters to vary (grid
+``values`` or random ``distribution`` draws over dotted paths such as
+``planner.budget``, derived from the method's settings model), named variants
+and the seeds. Loading validates the file and every concrete trial it expands
+to before anything runs; problems come back as :class:`SweepError` with one
+``FILE:LINE: path: message`` per problem.
 """
 
 from __future__ import annotations
 
+import copy
 import difflib
 import hashlib
 import itertools
 import json
 import math
+import types
+import typing
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import yaml
 from pydantic import (
-    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
+    SerializeAsAny,
     ValidationError,
-    ValidationInfo,
     field_validator,
     model_validator,
 )
 
-from workers.planning.config import Algorithm, PlannerConfig
+from workers.methods import DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
+from workers.planning.config import Algorithm
 from workers.tasks import TASKS, make_task, unknown_task_message
 
 DEFAULT_MAX_TRIALS = 1000
+MAX_FILE_BYTES = 1 << 20
+"""Sweep files are read whole before anything is checked; a bound keeps a bad file cheap to refuse."""
+
+MethodName = Literal[tuple(METHODS)]  # type: ignore[valid-type]
 
 
 class _UserModel(BaseModel):
@@ -86,35 +96,43 @@ class RandomParameter(_UserModel):
         return float(rng.uniform(self.low, self.high))
 
 
-class TrialSettings(_UserModel):
-    """Settings shared by every trial of the sweep (the base that parameters override)."""
+class SeedRange(_UserModel):
+    """Consecutive seeds: ``first``, ``first + 1``, ..., ``count`` of them."""
 
-    planner: PlannerConfig = PlannerConfig()
-    """The planner: budget, horizon and the switches of the CEM family (see PlannerConfig)."""
-    task_options: dict[str, Any] = {}
-    """Switches of the task's planning cost (see `icemlab tasks`), e.g. flip_penalty, velocity_term."""
-    episodes: int = Field(1, ge=1)
-    """MPC episodes per trial (each with its own seed derived from the trial seed)."""
-    max_steps: int | None = Field(None, ge=1)
-    """Cut episodes to this many steps (smoke runs); default: the task's episode length."""
+    first: int = Field(0, ge=0)
+    """The first seed."""
+    count: int = Field(ge=1)
+    """How many seeds."""
 
 
 class Resources(_UserModel):
-    """How a trial uses the machine or cluster."""
+    """How a trial uses the machine or cluster (does not change results)."""
 
     simulation_workers: int = Field(1, ge=1)
-    """SimulationWorker actors per trial; a trial's batch is split between them."""
+    """Simulation workers per trial (one co-located with the trial, the others separate actors); a planning
+    batch is split between them."""
     threads_per_worker: int | None = Field(None, ge=1)
-    """Native rollout threads (and Ray CPUs) per simulation worker. Default: the node's CPUs / concurrent trials."""
+    """CPUs (native rollout or torch threads) per worker. Default: the cluster's CPUs shared by the trials
+    that run at once."""
+    workers: dict[str, int] = {}
+    """Workers per role of the method, e.g. {relabel: 2} (see each method's roles)."""
+
+    @field_validator("workers")
+    @classmethod
+    def _positive_counts(cls, workers: dict[str, int]) -> dict[str, int]:
+        bad = {k: v for k, v in workers.items() if v < 1}
+        if bad:
+            raise ValueError(f"worker counts must be >= 1, got {bad}")
+        return workers
 
 
 class Metric(_UserModel):
-    """The figure a sweep is summarised by."""
+    """The figure a sweep is summarised and compared by."""
 
-    name: Literal["episode_return", "success"] = "episode_return"
-    """episode_return (sum of rewards) or success (success rate, tasks with a success criterion)."""
+    name: str | None = None
+    """A headline figure of the method (mpc: episode_return or success); default the method's first."""
     mode: Literal["max", "min"] = "max"
-    """Whether higher is better."""
+    """Whether higher is better: reports mark the best configuration by it."""
 
 
 class Tracking(_UserModel):
@@ -126,25 +144,6 @@ class Tracking(_UserModel):
     """Extra tags on the sweep's parent run."""
 
 
-def _check_parameter_path(path: str) -> str:
-    problem = parameter_path_problem(path)
-    if problem:
-        raise ValueError(problem)
-    return path
-
-
-ParameterPath = Annotated[str, AfterValidator(_check_parameter_path)]
-"""A dotted path that a sweep may vary."""
-
-
-def _check_variant_key(key: str) -> str:
-    return key if key == "name" else _check_parameter_path(key)
-
-
-Variant = dict[Annotated[str, AfterValidator(_check_variant_key)], Any]
-"""A named set of overrides: ``name`` plus dotted paths and their values."""
-
-
 class Sweep(_UserModel):
     """A sweep file: what to run, over which parameters and seeds, and how."""
 
@@ -152,44 +151,35 @@ class Sweep(_UserModel):
     """Sweep name (letters, digits, _ . -); names the MLflow experiment by default."""
     task: str
     """Task name, e.g. halfcheetah_running (see `icemlab tasks`)."""
-    algorithm: Algorithm = "icem"
-    """Planner of the CEM family: icem, cem, cem_mpc or cem_pets."""
-    base: TrialSettings = TrialSettings()
-    """Configuration shared by all trials."""
-    parameters: dict[ParameterPath, GridParameter | RandomParameter] = {}
-    """Parameters to vary, by dotted path (task, algorithm, planner.<field>, episodes, max_steps)."""
-    variants: list[Variant] = []
+    method: MethodName = DEFAULT_METHOD
+    """The method every trial runs (see `icemlab schema`): mpc (chapter 3) or a learning method."""
+    algorithm: Algorithm | None = None
+    """method mpc: the planner of the CEM family (icem, cem, cem_mpc, cem_pets); default icem."""
+    base: dict[str, Any] = {}
+    """The method's settings shared by all trials (for mpc: planner, episodes, max_steps, task_options, ...)."""
+    parameters: dict[str, GridParameter | RandomParameter] = {}
+    """Parameters to vary, by dotted path into the method's settings (e.g. planner.budget) or task / algorithm."""
+    variants: list[dict[str, Any]] = []
     """Named sets of overrides run side by side, e.g. ablations (thesis Fig. 7):
     [{name: full}, {name: no-colored-noise, planner.noise_beta: 0}]. Combined with every grid point and seed."""
     num_samples: int = Field(1, ge=1)
     """Draws of the random parameters (each combined with every grid point and seed)."""
-    seeds: list[int] = Field([0], min_length=1)
-    """Seeds; every configuration runs once per seed."""
+    seeds: list[int] | SeedRange = Field([0], min_length=1)
+    """Seeds, as a list or as {first, count}; every configuration runs once per seed."""
     metric: Metric = Metric()
     """The figure summarising each configuration in reports."""
     resources: Resources = Resources()
     """CPU and worker layout of each trial."""
     retries: int = Field(1, ge=0, le=10)
-    """How often a failed trial is retried before it is marked FAILED."""
+    """How often a trial whose code raised is tried again (from its last checkpoint) before it is FAILED;
+    an error that repeats identically is not retried again."""
+    max_lost_processes: int = Field(20, ge=0)
+    """How many lost processes (killed actors or nodes, memory kills, preemption) a trial recovers from, each
+    time from its last checkpoint, before it is FAILED."""
     max_trials: int = Field(DEFAULT_MAX_TRIALS, ge=1)
     """Refuse sweeps that expand to more trials than this (guards against runaway grids)."""
     tracking: Tracking = Tracking()
     """MLflow experiment and tags."""
-
-    @field_validator("variants")
-    @classmethod
-    def _variants_are_named_and_distinct(cls, variants: list[dict[str, Any]], info: ValidationInfo):
-        names = [variant.get("name") for variant in variants]
-        if any(not isinstance(name, str) or not name for name in names):
-            raise ValueError("every variant needs a 'name'")
-        if len(set(names)) != len(names):
-            raise ValueError(f"variant names must differ, got {names}")
-        parameters = info.data.get("parameters") or {}
-        for variant in variants:
-            clash = set(variant) & set(parameters)
-            if clash:
-                raise ValueError(f"{sorted(clash)} set both by variant {variant['name']!r} and by parameters")
-        return variants
 
     @field_validator("task")
     @classmethod
@@ -200,13 +190,40 @@ class Sweep(_UserModel):
 
     @field_validator("seeds")
     @classmethod
-    def _non_negative_seeds(cls, seeds: list[int]) -> list[int]:
+    def _non_negative_seeds(cls, seeds: list[int] | SeedRange) -> list[int] | SeedRange:
+        if isinstance(seeds, SeedRange):
+            return seeds
         negative = [s for s in seeds if s < 0]
         if negative:
-            raise ValueError(f"seeds must be >= 0, got {negative}")
+            raise ValueError(f"seeds must be >= 0, got {negative[:5]}")
         if len(set(seeds)) != len(seeds):
             raise ValueError("seeds must not repeat (a repeated seed would run the same trial twice)")
         return seeds
+
+    @field_validator("variants")
+    @classmethod
+    def _variants_are_named_and_distinct(cls, variants: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        names = [variant.get("name") for variant in variants]
+        if any(not isinstance(name, str) or not name for name in names):
+            raise ValueError("every variant needs a 'name'")
+        if len(set(names)) != len(names):
+            raise ValueError(f"variant names must differ, got {names}")
+        return variants
+
+    @property
+    def program(self) -> type[Program]:
+        return METHODS[self.method]
+
+    def seed_list(self) -> list[int]:
+        if isinstance(self.seeds, SeedRange):
+            return list(range(self.seeds.first, self.seeds.first + self.seeds.count))
+        return list(self.seeds)
+
+    def seed_count(self) -> int:
+        return self.seeds.count if isinstance(self.seeds, SeedRange) else len(self.seeds)
+
+    def metric_name(self) -> str:
+        return self.metric.name or next(iter(self.program.metrics))
 
 
 # ----------------------------------------------------------------- trials
@@ -215,24 +232,43 @@ class TrialConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    method: str
     task: str
-    task_options: dict[str, Any]
-    planner: PlannerConfig
-    episodes: int = Field(ge=1)
-    max_steps: int | None = Field(ge=1)
+    settings: SerializeAsAny[MethodSettings]
     seed: int = Field(ge=0)
+
+    def canonical(self) -> dict[str, Any]:
+        return {"method": self.method, "task": self.task, "settings": self.settings.model_dump(mode="json"), "seed": self.seed}
 
     def key(self) -> str:
         """Hash of the resolved config and seed: a trial's identity across runs and resumes."""
-        canonical = json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        canonical = json.dumps(self.canonical(), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
     def flat(self) -> dict[str, Any]:
-        """Dotted-path view for MLflow params."""
-        flat = {"task": self.task, "episodes": self.episodes, "max_steps": self.max_steps, "seed": self.seed}
-        flat.update({f"task_options.{k}": v for k, v in self.task_options.items()})
-        flat.update({f"planner.{k}": v for k, v in self.planner.model_dump().items()})
+        """Dotted-path view for MLflow params (planner.budget, task_options.flip_penalty, ...)."""
+        flat: dict[str, Any] = {"method": self.method, "task": self.task, "seed": self.seed}
+        flat.update(_flatten(self.settings.model_dump(mode="json")))
         return flat
+
+    def spec(self) -> TrialSpec:
+        return TrialSpec(self.method, self.task, self.settings, self.seed)
+
+    @classmethod
+    def from_canonical(cls, data: dict[str, Any]) -> TrialConfig:
+        """Rebuild a trial from :meth:`canonical` (e.g. as recorded in its run)."""
+        settings = METHODS[data["method"]].Settings.model_validate(data["settings"])
+        return cls(method=data["method"], task=data["task"], settings=settings, seed=data["seed"])
+
+
+def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 class Trial(NamedTuple):
@@ -240,12 +276,12 @@ class Trial(NamedTuple):
 
     key: str
     """Trial key (:meth:`TrialConfig.key`)."""
-    index: int
-    """Position in the sweep's expansion order."""
     config: TrialConfig
     """The resolved configuration."""
     overrides: dict[str, Any]
-    """The swept parameter values of this trial (for display)."""
+    """The swept parameter values of this trial (for display and grouping)."""
+    variant: str | None
+    """The variant the trial belongs to, if the sweep has variants."""
 
 
 class SweepProblem(NamedTuple):
@@ -281,26 +317,70 @@ class LoadedSweep(NamedTuple):
 
 
 # ---------------------------------------------------------- dotted paths
-TOP_LEVEL_PATHS = ("task", "algorithm", "episodes", "max_steps")
-PLANNER_FIELDS = tuple(PlannerConfig.model_fields)
+def _submodel(annotation: Any) -> type[BaseModel] | None:
+    """The pydantic model inside an annotation (``Model``, ``Model | None``), if any."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        models = [a for a in typing.get_args(annotation) if isinstance(a, type) and issubclass(a, BaseModel)]
+        return models[0] if len(models) == 1 else None
+    return None
 
 
-def parameter_path_problem(path: str) -> str | None:
-    """Why ``path`` cannot be swept, or None."""
-    if path in TOP_LEVEL_PATHS or (path.startswith("task_options.") and len(path) > len("task_options.")):
-        return None  # task options are checked against the task's own options when trials expand
-    if path.startswith("planner."):
-        field = path.removeprefix("planner.")
-        if field == "algorithm":
-            return "sweep 'algorithm' (top level), not planner.algorithm"
-        if field in PLANNER_FIELDS:
+def _is_mapping(annotation: Any) -> bool:
+    return annotation is dict or typing.get_origin(annotation) is dict
+
+
+def top_level_paths(method: str) -> tuple[str, ...]:
+    return ("task", "algorithm") if method == "mpc" else ("task",)
+
+
+def settings_paths(model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every dotted path into a settings model (groups end in '.<key>' for free-form mappings)."""
+    paths = []
+    for name, field in model.model_fields.items():
+        inner = _submodel(field.annotation)
+        if inner is not None:
+            paths.extend(settings_paths(inner, f"{prefix}{name}."))
+        elif _is_mapping(field.annotation):
+            paths.append(f"{prefix}{name}.<key>")
+        else:
+            paths.append(f"{prefix}{name}")
+    return paths
+
+
+def parameter_path_problem(path: str, method: str) -> str | None:
+    """Why ``path`` cannot be set by a parameter or variant of a ``method`` sweep, or None."""
+    if path in top_level_paths(method):
+        return None
+    if path == "algorithm":
+        return "'algorithm' applies to method mpc; set planner.algorithm in this method's settings"
+    model: type[BaseModel] = METHODS[method].Settings
+    parts = path.split(".")
+    for depth, part in enumerate(parts):
+        fields = model.model_fields
+        if part not in fields:
+            where = ".".join(parts[:depth])
+            known = [f"{where}.{f}" if where else f for f in fields]
+            if method == "mpc" and path == "planner.algorithm":
+                return "sweep 'algorithm' (top level), not planner.algorithm"
+            hint = _closest_hint(path, [*known, *top_level_paths(method)])
+            scope = f" in {where}" if where else ""
+            return f"unknown parameter path {path!r}{hint}: no field {part!r}{scope} of method {method}"
+        annotation = fields[part].annotation
+        rest = parts[depth + 1 :]
+        if not rest:
+            if method == "mpc" and path == "planner.algorithm":
+                return "sweep 'algorithm' (top level), not planner.algorithm"
             return None
-        return f"unknown planner field {field!r}{_closest_hint(field, PLANNER_FIELDS, 'planner.')}"
-    hint = _closest_hint(path, list(TOP_LEVEL_PATHS) + [f"planner.{f}" for f in PLANNER_FIELDS])
-    return (
-        f"unknown parameter path {path!r}{hint}; "
-        "sweepable: task, algorithm, episodes, max_steps, planner.<field>, task_options.<option>"
-    )
+        inner = _submodel(annotation)
+        if inner is not None:
+            model = inner
+            continue
+        if _is_mapping(annotation):
+            return None if len(rest) == 1 else f"{'.'.join(parts[: depth + 2])} takes a value, not nested keys"
+        return f"{'.'.join(parts[: depth + 1])} is a single value; it has no field {rest[0]!r}"
+    return None
 
 
 # ------------------------------------------------------------ locations
@@ -333,37 +413,46 @@ def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str
     """A hint for an unknown key, from the fields of the model the key sits in."""
     for part in loc[:-1]:
         field = model.model_fields.get(str(part)) if isinstance(part, str) else None
-        annotation = getattr(field, "annotation", None) if field else None
-        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-            model = annotation
-        else:
+        inner = _submodel(field.annotation) if field else None
+        if inner is None:
             return ""
+        model = inner
     return _closest_hint(key, model.model_fields)
 
 
-def _problems_from(error: ValidationError, file: str, root: yaml.Node | None, prefix=(), line_of=None):
+_UNION_MEMBERS = {"GridParameter", "RandomParameter", "SeedRange", "list[int]", "[key]"}
+
+
+def _problems_from(error: ValidationError, file: str, root, model: type[BaseModel], prefix=()) -> list[SweepProblem]:
     problems = []
     for item in error.errors():
-        loc = tuple(prefix) + tuple(item["loc"])
         # Pydantic names union members in the location; they are not YAML keys.
-        loc = tuple(p for p in loc if p not in ("GridParameter", "RandomParameter", "[key]"))
+        loc = tuple(p for p in item["loc"] if p not in _UNION_MEMBERS)
         message = item["msg"].removeprefix("Value error, ")
         if item["type"] == "extra_forbidden":
-            message = f"unknown key{_did_you_mean(Sweep, loc, str(loc[-1]))}"
+            message = f"unknown key{_did_you_mean(model, loc, str(loc[-1]))}"
         elif item["type"] == "missing":
             message = "required key is missing"
-        line = line_of if line_of is not None else _node_line(root, loc)
+        loc = tuple(prefix) + loc
         path = ".".join(str(p) for p in loc) or "(file)"
-        problems.append(SweepProblem(file, line, path, message))
+        problems.append(SweepProblem(file, _node_line(root, loc), path, message))
     return problems
 
 
+def _sorted(problems: list[SweepProblem]) -> list[SweepProblem]:
+    return sorted(dict.fromkeys(problems), key=lambda p: p.line)
+
+
 # --------------------------------------------------------------- loading
-def load_sweep(path: str | Path) -> LoadedSweep:
-    """Read, validate and expand a sweep file; raise :class:`SweepError` on any problem."""
-    path = Path(path)
+def _read_yaml(path: Path) -> tuple[str, Any, yaml.Node | None]:
     file = str(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise SweepError([SweepProblem(file, 1, "(file)", (
+                f"the file is {size:,} bytes, above the {MAX_FILE_BYTES:,}-byte limit of sweep files; "
+                "write long seed lists as seeds: {first: 0, count: N}"
+            ))])  # fmt: skip
         raw_bytes = path.read_bytes()
     except OSError as error:
         raise SweepError([SweepProblem(file, 1, "(file)", f"cannot read: {error.strerror or error}")]) from None
@@ -373,9 +462,14 @@ def load_sweep(path: str | Path) -> LoadedSweep:
         text = raw_bytes.decode("utf-8")
     except UnicodeDecodeError as error:
         raise SweepError([SweepProblem(file, 1, "(file)", f"not UTF-8 text ({error.reason})")]) from None
+    loader_class = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
     try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        loader = loader_class(text)
+        try:
+            root = loader.get_single_node()
+            data = loader.construct_document(root) if root is not None else None
+        finally:
+            loader.dispose()
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         line = mark.line + 1 if mark is not None else 1
@@ -384,6 +478,14 @@ def load_sweep(path: str | Path) -> LoadedSweep:
         if context and context_mark is not None and context_mark.line + 1 != line:
             reason += f" ({context} on line {context_mark.line + 1})"
         raise SweepError([SweepProblem(file, line, "(yaml)", f"YAML syntax error: {reason}")]) from None
+    return text, data, root
+
+
+def load_sweep(path: str | Path) -> LoadedSweep:
+    """Read, validate and expand a sweep file; raise :class:`SweepError` on any problem."""
+    path = Path(path)
+    file = str(path)
+    text, data, root = _read_yaml(path)
     if data is None:
         raise SweepError([SweepProblem(file, 1, "(file)", "empty sweep file; see sweeps/quickstart.yaml")])
     if not isinstance(data, dict):
@@ -391,27 +493,84 @@ def load_sweep(path: str | Path) -> LoadedSweep:
     try:
         sweep = Sweep.model_validate(data)
     except ValidationError as error:
-        raise SweepError(sorted(_problems_from(error, file, root), key=lambda p: p.line)) from None
-    planner_input = (data.get("base") or {}).get("planner") or {}
-    if "algorithm" in planner_input and planner_input["algorithm"] != sweep.algorithm:
-        line = _node_line(root, ("base", "planner", "algorithm"))
-        raise SweepError(
-            [SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level")]
-        )
-    trials = expand(sweep, data, file, root)
+        problems = _problems_from(error, file, root, Sweep)
+        problems += _method_problems(data, file, root) if "base" not in {p.path.split(".")[0] for p in problems} else []
+        raise SweepError(_sorted(problems)) from None
+    problems = _method_problems(data, file, root)
+    if problems:
+        raise SweepError(_sorted(problems))
+    trials = expand(sweep, file, root)
     file_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
     return LoadedSweep(sweep, trials, text, path, file_hash)
 
 
+def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem]:
+    """Problems of the parts a method's settings decide: base, parameter paths, variants, roles."""
+    method = data.get("method", DEFAULT_METHOD)
+    if method not in METHODS:
+        return []  # reported by the Sweep model
+    program = METHODS[method]
+    problems: list[SweepProblem] = []
+    base = data.get("base") or {}
+    if isinstance(base, dict):
+        try:
+            program.Settings.model_validate(base)
+        except ValidationError as error:
+            problems += _problems_from(error, file, root, program.Settings, prefix=("base",))
+        if method == "mpc" and isinstance(base.get("planner"), dict) and "algorithm" in base["planner"]:
+            line = _node_line(root, ("base", "planner", "algorithm"))
+            problems.append(SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level"))
+    if data.get("algorithm") is not None and method != "mpc":
+        problems.append(SweepProblem(file, _node_line(root, ("algorithm",)), "algorithm", (
+            f"'algorithm' applies to method mpc; for {method} set base.planner.algorithm"
+        )))  # fmt: skip
+    parameters = data.get("parameters") or {}
+    for path in parameters if isinstance(parameters, dict) else []:
+        problem = parameter_path_problem(str(path), method)
+        if problem:
+            problems.append(SweepProblem(file, _node_line(root, ("parameters", path)), f"parameters.{path}", problem))
+    variants = data.get("variants") or []
+    for index, variant in enumerate(variants if isinstance(variants, list) else []):
+        if not isinstance(variant, dict):
+            continue
+        for key in variant:
+            problem = None if key == "name" else parameter_path_problem(str(key), method)
+            if problem:
+                problems.append(SweepProblem(file, _node_line(root, ("variants", index, key)), str(key), problem))
+            elif key in parameters:
+                problems.append(SweepProblem(file, _node_line(root, ("variants", index, key)), str(key), (
+                    f"set both by variant {variant.get('name')!r} and by parameters"
+                )))  # fmt: skip
+    roles = (data.get("resources") or {}).get("workers") or {}
+    for role in roles if isinstance(roles, dict) else []:
+        if role not in program.role_names:
+            known = ", ".join(program.role_names) or "none"
+            hint = _closest_hint(str(role), program.role_names)
+            problems.append(SweepProblem(file, _node_line(root, ("resources", "workers", role)),
+                                         f"resources.workers.{role}",
+                                         f"method {method} has no role {role!r}{hint}; its roles: {known}"))  # fmt: skip
+    metric = (data.get("metric") or {}).get("name")
+    if metric is not None and metric not in program.metrics:
+        problems.append(SweepProblem(file, _node_line(root, ("metric", "name")), "metric.name", (
+            f"method {method} reports no metric {metric!r}{_closest_hint(str(metric), program.metrics)}; "
+            f"its metrics: {', '.join(program.metrics)}"
+        )))  # fmt: skip
+    return problems
+
+
 def _set_path(config: dict[str, Any], path: str, value: Any) -> None:
+    if path == "task":
+        config["task"] = value
+        return
     if path == "algorithm":
-        config["planner"]["algorithm"] = value
-    elif path.startswith("planner."):
-        config["planner"][path.removeprefix("planner.")] = value
-    elif path.startswith("task_options."):
-        config["task_options"][path.removeprefix("task_options.")] = value
-    else:
-        config[path] = value
+        path = "planner.algorithm"
+    *parents, leaf = path.split(".")
+    node = config["settings"]
+    for part in parents:
+        child = node.get(part)
+        node[part] = child = dict(child) if isinstance(child, dict) else {}
+        node = child
+    node[leaf] = value
 
 
 def _sweep_rng(sweep: Sweep) -> np.random.Generator:
@@ -420,36 +579,33 @@ def _sweep_rng(sweep: Sweep) -> np.random.Generator:
     return np.random.default_rng(int.from_bytes(digest[:8], "little"))
 
 
-def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml.Node | None = None) -> list[Trial]:
+def expand(sweep: Sweep, file: str = "<sweep>", root: yaml.Node | None = None) -> list[Trial]:
     """All trials of a sweep, each validated and resolved; raise SweepError on any problem."""
     grid = {p: spec.values for p, spec in sweep.parameters.items() if isinstance(spec, GridParameter)}
     randoms = {p: spec for p, spec in sweep.parameters.items() if isinstance(spec, RandomParameter)}
     grid_points = math.prod(len(v) for v in grid.values()) if grid else 1
     samples = sweep.num_samples if randoms else 1
     variants = sweep.variants or [{}]
-    count = len(variants) * grid_points * samples * len(sweep.seeds)
+    count = len(variants) * grid_points * samples * sweep.seed_count()
     if count > sweep.max_trials:
-        line = _node_line(root, ("parameters",))
-        raise SweepError(
-            [
-                SweepProblem(
-                    file,
-                    line,
-                    "parameters",
-                    f"the sweep expands to {count} trials, above max_trials = {sweep.max_trials}; "
-                    "shrink the grid or raise max_trials",
-                )
-            ]
+        where = ("seeds",) if grid_points * samples * len(variants) <= sweep.max_trials else ("parameters",)
+        line = _node_line(root, where)
+        message = (
+            f"the sweep expands to {count:,} trials, above max_trials = {sweep.max_trials}; "
+            "shrink the grid or the seeds, or raise max_trials"
         )
+        raise SweepError([SweepProblem(file, line, where[0], message)])
 
-    base_planner = dict((data.get("base") or {}).get("planner") or {})
-    base_planner["algorithm"] = sweep.algorithm
+    base = copy.deepcopy(sweep.base)
+    if sweep.method == "mpc":
+        base.setdefault("planner", {})
+        base["planner"] = dict(base["planner"] or {}, algorithm=sweep.algorithm or "icem")
     rng = _sweep_rng(sweep)
     draws = [{p: spec.draw(rng) for p, spec in randoms.items()} for _ in range(samples)]
 
     trials: list[Trial] = []
     problems: list[SweepProblem] = []
-    seen: dict[str, int] = {}
+    seen: set[str] = set()
     combinations = list(itertools.product(*grid.values())) if grid else [()]
     for index, variant in enumerate(variants):
         # Where each override comes from in the YAML, to locate its errors.
@@ -458,52 +614,46 @@ def expand(sweep: Sweep, data: dict[str, Any], file: str = "<sweep>", root: yaml
         sources |= {path: ("parameters", path) for path in sweep.parameters}
         for combination, draw in itertools.product(combinations, draws):
             overrides = variant_overrides | dict(zip(grid, combination)) | draw
-            shown = ({"variant": variant["name"]} if variant else {}) | overrides
-            for seed in sweep.seeds:
-                config = {
-                    "task": sweep.task,
-                    "task_options": dict(sweep.base.task_options),
-                    "planner": dict(base_planner),
-                    "episodes": sweep.base.episodes,
-                    "max_steps": sweep.base.max_steps,
-                    "seed": seed,
-                }
+            for seed in sweep.seed_list():
+                config = {"task": sweep.task, "settings": copy.deepcopy(base), "seed": seed}
                 for path, value in overrides.items():
                     _set_path(config, path, value)
-                trial = _resolve_trial(config, sources, file, root, problems)
+                trial = _resolve_trial(sweep.method, config, sources, file, root, problems)
                 if trial is None:
                     continue
                 key = trial.key()
                 if key in seen:
                     continue  # identical configurations (e.g. a repeated grid value) run once
-                seen[key] = len(trials)
-                trials.append(Trial(key, len(trials), trial, shown))
+                seen.add(key)
+                trials.append(Trial(key, trial, overrides, variant.get("name")))
     if problems:
-        raise SweepError(sorted(dict.fromkeys(problems), key=lambda p: p.line))
+        raise SweepError(_sorted(problems))
     return trials
 
 
-def _resolve_trial(config, sources, file, root, problems) -> TrialConfig | None:
+def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialConfig | None:
     """Validate and resolve one trial's config; on failure add located problems and return None.
 
     ``sources`` maps each overridden path to its location in the YAML (a
     parameter or a variant), so that an invalid value is reported where it
     was written.
     """
+    program = METHODS[method]
 
     def blame(path: str) -> int:
         for parameter, location in sources.items():
-            if (
-                path == parameter
-                or path.startswith(parameter + ".")
-                or (parameter == "algorithm" and path == "planner.algorithm")
-            ):
+            target = "planner.algorithm" if parameter == "algorithm" else parameter
+            if path == target or path.startswith(target + "."):
                 return _node_line(root, location)
         return _node_line(root, ("base", *path.split(".")))
 
     task = config["task"]
     if task not in TASKS:
         problems.append(SweepProblem(file, blame("task"), "task", unknown_task_message(str(task))))
+        return None
+    problem = program.task_problem(TASKS[task])
+    if problem:
+        problems.append(SweepProblem(file, blame("task"), "task", problem))
         return None
 
     def report(error: ValidationError, prefix: str, fields: list[str] | None = None) -> None:
@@ -516,27 +666,45 @@ def _resolve_trial(config, sources, file, root, problems) -> TrialConfig | None:
                 message = f"{task} has no option {option!r}{hint}; its options: {', '.join(fields) or 'none'}"
             problems.append(SweepProblem(file, blame(path), path, message))
 
+    settings = config["settings"]
     try:
-        task_instance = make_task(task, config["task_options"])
+        task_instance = make_task(task, settings.get("task_options"))
     except ValidationError as error:
         report(error, "task_options", list(TASKS[task].Options.model_fields))
         return None
     try:
-        planner = PlannerConfig.model_validate(config["planner"]).resolved(task_instance.colored_noise_beta)
-    except ValidationError as error:
-        report(error, "planner")
-        return None
-    try:
-        options = task_instance.options.model_dump()
-        return TrialConfig.model_validate({**config, "planner": planner, "task_options": options})
+        validated = program.Settings.model_validate(settings)
+        resolved = program.resolve(validated, task_instance)
+        resolved = resolved.model_copy(update={"task_options": task_instance.options.model_dump()})
     except ValidationError as error:
         report(error, "")
         return None
+    except ValueError as error:  # a resolution that the task rules out
+        problems.append(SweepProblem(file, blame("task"), "task", str(error)))
+        return None
+    return TrialConfig(method=method, task=task, settings=resolved, seed=config["seed"])
 
 
 def sweep_json_schema() -> dict[str, Any]:
-    """JSON Schema of sweep files, for editor completion and validation."""
+    """JSON Schema of sweep files, for editor completion and validation.
+
+    ``base`` takes the settings of the sweep's method: one conditional branch
+    per method (mpc also when ``method`` is left out).
+    """
     schema = Sweep.model_json_schema()
+    definitions = schema.setdefault("$defs", {})
+    branches = []
+    for name, program in METHODS.items():
+        settings_schema = program.Settings.model_json_schema(ref_template="#/$defs/{model}")
+        definitions.update(settings_schema.pop("$defs", {}))
+        definitions[program.Settings.__name__] = settings_schema
+        condition: dict[str, Any] = {"properties": {"method": {"const": name}}, "required": ["method"]}
+        if name == DEFAULT_METHOD:
+            condition = {"anyOf": [condition, {"not": {"required": ["method"]}}]}
+        branches.append(
+            {"if": condition, "then": {"properties": {"base": {"$ref": f"#/$defs/{program.Settings.__name__}"}}}}
+        )
+    schema["allOf"] = branches
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["title"] = "icemlab sweep"
     return schema

@@ -1,24 +1,32 @@
 """Everything that talks to MLflow (the only module that imports mlflow).
 
 Run tree: one experiment per sweep; a parent run per sweep execution (the YAML,
-summary table and plots); a child run per trial attempt (resolved config as
-params; trial_key / task / algorithm / seed tags; per-step and per-episode
-metrics; episode plots). Only the driver writes, so the embedded SQLite store
-sees exactly one writer.
+summary table and plots); a child run per trial (resolved config as params;
+trial_key / method / task / seed / variant tags; the metrics of its rounds;
+plots, data files and checkpoints as artifacts). Only the driver writes, so
+the embedded SQLite store sees exactly one writer.
 
 Identity and resume: a trial is its key (hash of resolved config and seed).
-A key with a FINISHED child run is never run or logged again. An attempt that
-did not finish (driver killed, trial raised) keeps its run with status KILLED
-or FAILED and the tag ``icemlab.superseded_by`` pointing at the next attempt,
-so each trial ends with exactly one current run.
+A key with a FINISHED child run is never run or logged again. A trial keeps
+one child run through retries, lost processes and ``--resume``: every
+restart continues the same run from the trial's last checkpoint, and records
+why it restarted (``failures/``). Rounds are logged with a marker metric
+(``icemlab.round``); a round whose marker is present is never logged again.
+
+Checkpoints live in the run's artifacts, ``checkpoints/round_NNNNNN/``: the
+state file first, then ``manifest.json`` with its size and sha256. A
+checkpoint without a manifest (a crash while writing) or whose state does not
+match it (truncated, replaced) is skipped for the one before it.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -27,7 +35,10 @@ os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
 os.environ.setdefault("DO_NOT_TRACK", "true")
 
 from mlflow.entities import Metric, Param, RunStatus, RunTag  # noqa: E402
+from mlflow.exceptions import MlflowException  # noqa: E402
 from mlflow.tracking import MlflowClient  # noqa: E402
+
+from workers.checkpoint import digest  # noqa: E402
 
 # Database set-up messages are not news to the user.
 logging.getLogger("mlflow.store.db.utils").setLevel(logging.WARNING)
@@ -37,12 +48,26 @@ TAG_KIND = "icemlab.kind"
 TAG_SWEEP = "icemlab.sweep"
 TAG_SWEEP_HASH = "icemlab.sweep_file_hash"
 TAG_TRIAL_KEY = "icemlab.trial_key"
-TAG_ATTEMPT = "icemlab.attempt"
-TAG_SUPERSEDED = "icemlab.superseded_by"
+TAG_VARIANT = "icemlab.variant"
+TAG_ATTEMPTS = "icemlab.attempts"
 TAG_ERROR = "icemlab.error"
+TAG_ERROR_CLASS = "icemlab.error_class"
+TAG_ROUNDS = "icemlab.rounds"
+TAG_FAILED_TRIALS = "icemlab.failed_trials"
+TAG_INTERRUPTED = "icemlab.interrupted"
 TAG_PARENT = "mlflow.parentRunId"
+TAG_RUN_NAME = "mlflow.runName"
+ROUND_MARKER = "icemlab.round"
+"""Metric logged with the last batch of every round, at step = round index."""
+CHECKPOINTS = "checkpoints"
+KEEP_CHECKPOINTS = 3
 MAX_BATCH = 1000  # MLflow's limit of metrics per log_batch request
 MAX_TAG_LENGTH = 5000
+
+FINISHED = RunStatus.to_string(RunStatus.FINISHED)
+FAILED = RunStatus.to_string(RunStatus.FAILED)
+KILLED = RunStatus.to_string(RunStatus.KILLED)
+RUNNING = RunStatus.to_string(RunStatus.RUNNING)
 
 
 def default_tracking_uri(directory: Path | None = None) -> str:
@@ -56,16 +81,52 @@ def resolve_tracking_uri(uri: str | None) -> str:
     return uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri()
 
 
+class SweepRun(NamedTuple):
+    """A sweep's parent run, as found in MLflow."""
+
+    run_id: str
+    name: str
+    status: str
+    experiment_id: str
+    tags: dict[str, str]
+    metrics: dict[str, float]
+
+
 class TrialRun(NamedTuple):
-    """A child run of a sweep, as found in MLflow."""
+    """A trial's child run, as found in MLflow."""
 
     run_id: str
     trial_key: str
     status: str
-    superseded: bool
+    name: str
     params: dict[str, str]
     tags: dict[str, str]
     metrics: dict[str, float]
+
+    @property
+    def variant(self) -> str | None:
+        return self.tags.get(TAG_VARIANT)
+
+    @property
+    def error(self) -> str | None:
+        return self.tags.get(TAG_ERROR)
+
+    @property
+    def error_class(self) -> str | None:
+        return self.tags.get(TAG_ERROR_CLASS)
+
+    @property
+    def attempts(self) -> int:
+        return int(self.tags.get(TAG_ATTEMPTS, "1"))
+
+
+class StoredCheckpoint(NamedTuple):
+    """A verified checkpoint read back from a run."""
+
+    round_index: int
+    """The last round the checkpoint includes."""
+    data: bytes
+    """The checkpoint file (see workers.checkpoint)."""
 
 
 class Tracker:
@@ -74,7 +135,6 @@ class Tracker:
     def __init__(self, tracking_uri: str | None = None):
         self.uri = resolve_tracking_uri(tracking_uri)
         self.client = MlflowClient(tracking_uri=self.uri)
-        self._local_artifacts = self.uri.startswith("sqlite:") or "://" not in self.uri
 
     # ------------------------------------------------------------ sweeps
     def experiment_id(self, name: str, create: bool = True) -> str | None:
@@ -95,7 +155,18 @@ class Tracker:
         self.client.set_experiment_tag(experiment_id, "mlflow.experimentKind", "custom_model_development")
         return experiment_id
 
-    def find_sweep_run(self, experiment: str, sweep_name: str) -> Any | None:
+    @staticmethod
+    def _sweep_record(run) -> SweepRun:
+        return SweepRun(
+            run.info.run_id,
+            run.data.tags.get(TAG_SWEEP, "?"),
+            run.info.status,
+            run.info.experiment_id,
+            dict(run.data.tags),
+            dict(run.data.metrics),
+        )
+
+    def find_sweep_run(self, experiment: str, sweep_name: str) -> SweepRun | None:
         """The latest parent run of a sweep, or None."""
         experiment_id = self.experiment_id(experiment, create=False)
         if experiment_id is None:
@@ -106,7 +177,7 @@ class Tracker:
             order_by=["attributes.start_time DESC"],
             max_results=1,
         )
-        return runs[0] if runs else None
+        return self._sweep_record(runs[0]) if runs else None
 
     def start_sweep(
         self, experiment: str, sweep_name: str, file_hash: str, yaml_text: str, tags: dict[str, str], version: str
@@ -129,13 +200,24 @@ class Tracker:
 
     def reopen_sweep(self, run_id: str, file_hash: str) -> None:
         """Mark a parent run RUNNING again for a resume."""
-        self.client.update_run(run_id, status="RUNNING")
+        self.client.update_run(run_id, status=RUNNING)
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)
 
     def end_sweep(
-        self, run_id: str, status: str, summary: dict[str, float], tags: dict[str, str], artifacts: Iterable[Path] = ()
+        self,
+        run_id: str,
+        status: str,
+        summary: dict[str, float],
+        failed_trials: int | None = None,
+        artifacts: Iterable[Path] = (),
+        interrupted: bool = False,
     ) -> None:
         now = _now_ms()
+        tags = {}
+        if failed_trials is not None:
+            tags[TAG_FAILED_TRIALS] = str(failed_trials)
+        if interrupted:
+            tags[TAG_INTERRUPTED] = "true"
         self.client.log_batch(
             run_id,
             metrics=[Metric(k, float(v), now, 0) for k, v in summary.items()],
@@ -145,9 +227,22 @@ class Tracker:
             self.client.log_artifact(run_id, str(path))
         self.client.set_terminated(run_id, status=status)
 
+    def sweeps(self) -> list[SweepRun]:
+        """Every sweep parent run, newest first."""
+        experiments = self.client.search_experiments()
+        if not experiments:
+            return []
+        runs = self.client.search_runs(
+            [e.experiment_id for e in experiments],
+            filter_string=f"tags.`{TAG_KIND}` = 'sweep'",
+            order_by=["attributes.start_time DESC"],
+            max_results=1000,
+        )
+        return [self._sweep_record(run) for run in runs]
+
     # ------------------------------------------------------------ trials
     def trial_runs(self, parent_run_id: str) -> list[TrialRun]:
-        """Every child run of a parent run (all attempts)."""
+        """Every child run of a parent run."""
         parent = self.client.get_run(parent_run_id)
         runs = self.client.search_runs(
             [parent.info.experiment_id],
@@ -159,102 +254,195 @@ class Tracker:
                 run.info.run_id,
                 run.data.tags.get(TAG_TRIAL_KEY, ""),
                 run.info.status,
-                TAG_SUPERSEDED in run.data.tags,
-                run.data.params,
-                run.data.tags,
-                run.data.metrics,
+                run.data.tags.get(TAG_RUN_NAME, ""),
+                dict(run.data.params),
+                dict(run.data.tags),
+                dict(run.data.metrics),
             )
             for run in runs
         ]
 
     def start_trial(
-        self, parent_run_id: str, trial_key: str, name: str, params: dict[str, Any], tags: dict[str, str], attempt: int
+        self,
+        parent_run_id: str,
+        trial_key: str,
+        name: str,
+        params: dict[str, Any],
+        tags: dict[str, str],
+        artifacts: Mapping[str, str] = {},
     ) -> str:
+        """Create a trial's child run with its params, tags and text artifacts (e.g. the resolved settings)."""
         parent = self.client.get_run(parent_run_id)
         run = self.client.create_run(
             parent.info.experiment_id,
             run_name=name,
-            tags={
-                TAG_PARENT: parent_run_id,
-                TAG_KIND: "trial",
-                TAG_TRIAL_KEY: trial_key,
-                TAG_ATTEMPT: str(attempt),
-                **tags,
-            },
+            tags={TAG_PARENT: parent_run_id, TAG_KIND: "trial", TAG_TRIAL_KEY: trial_key, TAG_ATTEMPTS: "1", **tags},
         )
-        self.client.log_batch(run.info.run_id, params=[Param(k, _param(v)) for k, v in params.items()])
+        params_list = [Param(k, _param(v)) for k, v in params.items()]
+        for start in range(0, len(params_list), 100):
+            self.client.log_batch(run.info.run_id, params=params_list[start : start + 100])
+        for path, text in artifacts.items():
+            self.client.log_text(run.info.run_id, text, path)
         return run.info.run_id
 
-    def supersede(self, run_id: str, by_run_id: str, status: str) -> None:
-        """Close an earlier attempt (KILLED or FAILED) and point it at the next one."""
-        self.client.set_tag(run_id, TAG_SUPERSEDED, by_run_id)
-        if self.client.get_run(run_id).info.status in ("RUNNING", "SCHEDULED"):
-            self.client.set_terminated(run_id, status=status)
+    def reopen_trial(self, run_id: str, attempt: int) -> None:
+        """Continue a trial's run for another attempt (after a failure, a lost process or a resume)."""
+        self.client.set_tag(run_id, TAG_ATTEMPTS, str(attempt))
+        if self.client.get_run(run_id).info.status != RUNNING:
+            self.client.update_run(run_id, status=RUNNING)
 
-    def log_episode(
+    def logged_rounds(self, run_id: str) -> set[int]:
+        """Rounds whose metrics are in the run (their marker was logged)."""
+        return {m.step for m in self.client.get_metric_history(run_id, ROUND_MARKER)}
+
+    def log_round(
         self,
         run_id: str,
-        episode: int,
-        step_offset: int,
-        per_step: dict[str, Iterable[float]],
-        per_episode: dict[str, float],
+        index: int,
+        step: int,
+        metrics: Mapping[str, float],
+        series: Mapping[str, Sequence[float]],
+        series_start: int,
+        artifacts: Sequence[tuple[str, bytes]] = (),
     ) -> None:
-        """Log one episode: per-step series (steps counted across episodes) and per-episode figures."""
+        """Log one round: per-step series, round metrics at ``step``, files; the round marker last."""
         now = _now_ms()
-        metrics = [
-            Metric(key, float(value), now, step_offset + t)
-            for key, values in per_step.items()
-            for t, value in enumerate(values)
+        entries = [
+            Metric(key, float(value), now, series_start + t) for key, values in series.items() for t, value in enumerate(values)
         ]
-        metrics += [Metric(key, float(value), now, episode) for key, value in per_episode.items()]
-        for start in range(0, len(metrics), MAX_BATCH):
-            self.client.log_batch(run_id, metrics=metrics[start : start + MAX_BATCH])
+        entries += [Metric(key, float(value), now, step) for key, value in metrics.items()]
+        if artifacts:
+            with tempfile.TemporaryDirectory() as directory:
+                for path, data in artifacts:
+                    local = Path(directory) / path
+                    local.parent.mkdir(parents=True, exist_ok=True)
+                    local.write_bytes(data)
+                    self.client.log_artifact(run_id, str(local), str(Path(path).parent) if "/" in path else None)
+        # The marker goes into the last batch: a round counts as logged only once all of it is.
+        entries.append(Metric(ROUND_MARKER, float(index), now, index))
+        for start in range(0, len(entries), MAX_BATCH):
+            self.client.log_batch(run_id, metrics=entries[start : start + MAX_BATCH])
+        self.client.set_tag(run_id, TAG_ROUNDS, str(index + 1))
 
-    def log_figure(self, run_id: str, figure: Any, artifact_file: str) -> None:
-        self.client.log_figure(run_id, figure, artifact_file)
+    def record_failure(self, run_id: str, attempt: int, kind: str, cause: str, detail: str) -> None:
+        """Say in the run why an attempt ended: its class, a one-line cause, the full text as a file."""
+        self.client.log_batch(
+            run_id,
+            tags=[RunTag(TAG_ERROR, cause[-MAX_TAG_LENGTH:]), RunTag(TAG_ERROR_CLASS, kind)],
+            metrics=[Metric(f"failures/{kind}", 1.0, _now_ms(), attempt)],
+        )
+        self.client.log_text(run_id, f"class: {kind}\ncause: {cause}\n\n{detail}", f"failures/attempt_{attempt:03d}_{kind}.txt")
 
-    def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
-        self.client.log_text(run_id, text, artifact_file)
-
-    def end_trial(
-        self, run_id: str, status: str, summary: dict[str, float] | None = None, error: str | None = None
-    ) -> None:
-        """Close a trial run: FINISHED with summary metrics, or FAILED / KILLED with the error."""
+    def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
+        """Close a trial's run: FINISHED with its summary metrics, or FAILED / KILLED."""
         if summary:
             now = _now_ms()
             self.client.log_batch(run_id, metrics=[Metric(k, float(v), now, 0) for k, v in summary.items()])
-        if error:
-            self.client.set_tag(run_id, TAG_ERROR, error[-MAX_TAG_LENGTH:])
-            self.client.log_text(run_id, error, "error.txt")
+        if status == FINISHED:
+            # Earlier attempts' errors stay in failures/; the tags describe why a run is not FINISHED.
+            tags = self.client.get_run(run_id).data.tags
+            for tag in (TAG_ERROR, TAG_ERROR_CLASS):
+                if tag in tags:
+                    self.client.delete_tag(run_id, tag)
         self.client.set_terminated(run_id, status=status)
 
     def metric_history(self, run_id: str, key: str) -> list[tuple[int, float]]:
         return [(m.step, m.value) for m in self.client.get_metric_history(run_id, key)]
 
-    # ------------------------------------------------------------ lookup
-    def sweeps(self) -> list[Any]:
-        """Every sweep parent run, newest first."""
-        experiments = self.client.search_experiments()
-        if not experiments:
-            return []
-        return self.client.search_runs(
-            [e.experiment_id for e in experiments],
-            filter_string=f"tags.`{TAG_KIND}` = 'sweep'",
-            order_by=["attributes.start_time DESC"],
-            max_results=1000,
-        )
+    def list_files(self, run_id: str, path: str | None = None) -> list[str]:
+        """Artifact paths of a run (one level)."""
+        return [f.path for f in self.client.list_artifacts(run_id, path)]
+
+    def download(self, run_id: str, path: str, directory: str | Path) -> Path:
+        return Path(self.client.download_artifacts(run_id, path, str(directory)))
+
+    # -------------------------------------------------------- checkpoints
+    def save_checkpoint(self, run_id: str, round_index: int, data: bytes) -> None:
+        """Write a checkpoint after round ``round_index``: state first, manifest last; keep the newest few."""
+        folder = f"{CHECKPOINTS}/round_{round_index:06d}"
+        manifest = {"round": round_index, "bytes": len(data), "sha256": digest(data), "written": _now_ms()}
+        with tempfile.TemporaryDirectory() as directory:
+            state = Path(directory) / "state.npz"
+            state.write_bytes(data)
+            self.client.log_artifact(run_id, str(state), folder)
+            (Path(directory) / "manifest.json").write_text(json.dumps(manifest))
+            self.client.log_artifact(run_id, str(Path(directory) / "manifest.json"), folder)
+        self._prune_checkpoints(run_id)
+
+    def _checkpoint_rounds(self, run_id: str) -> list[int]:
+        rounds = []
+        for path in self.list_files(run_id, CHECKPOINTS):
+            name = path.rsplit("/", 1)[-1]
+            if name.startswith("round_") and name[6:].isdigit():
+                rounds.append(int(name[6:]))
+        return sorted(rounds)
+
+    def _prune_checkpoints(self, run_id: str) -> None:
+        rounds = self._checkpoint_rounds(run_id)
+        if len(rounds) <= KEEP_CHECKPOINTS:
+            return
+        try:
+            from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
+            repository = get_artifact_repository(self.client.get_run(run_id).info.artifact_uri)
+            for old in rounds[:-KEEP_CHECKPOINTS]:
+                repository.delete_artifacts(f"{CHECKPOINTS}/round_{old:06d}")
+        except (MlflowException, NotImplementedError, OSError) as error:  # a store that cannot delete keeps them
+            logging.getLogger(__name__).info("old checkpoints kept: %s", error)
+
+    def load_checkpoint(self, run_id: str, skip: Iterable[int] = ()) -> tuple[StoredCheckpoint | None, list[str]]:
+        """The newest checkpoint whose state matches its manifest, and a note per checkpoint passed over.
+
+        Args:
+            skip: rounds whose checkpoints were found unusable before (e.g. refused by the program).
+        """
+        notes: list[str] = []
+        skipped = set(skip)
+        for round_index in reversed(self._checkpoint_rounds(run_id)):
+            if round_index in skipped:
+                continue
+            folder = f"{CHECKPOINTS}/round_{round_index:06d}"
+            with tempfile.TemporaryDirectory() as directory:
+                try:
+                    manifest = json.loads(self.download(run_id, f"{folder}/manifest.json", directory).read_text())
+                    data = self.download(run_id, f"{folder}/state.npz", directory).read_bytes()
+                except (MlflowException, OSError, ValueError) as error:
+                    notes.append(f"checkpoint of round {round_index} is incomplete ({type(error).__name__}); skipped")
+                    continue
+            if len(data) != manifest.get("bytes") or digest(data) != manifest.get("sha256"):
+                notes.append(
+                    f"checkpoint of round {round_index} does not match its manifest "
+                    f"({len(data)} bytes, expected {manifest.get('bytes')}; checksum differs); skipped"
+                )
+                continue
+            return StoredCheckpoint(round_index, data), notes
+        return None, notes
+
+    def note(self, run_id: str, text: str) -> None:
+        """Append a line to the run's notes file (checkpoints skipped, resumes)."""
+        self.client.log_text(run_id, text + "\n", f"notes/{_now_ms()}.txt")
 
 
 def _param(value: Any) -> str:
-    return "None" if value is None else str(value)
+    if value is None:
+        return "None"
+    if isinstance(value, (dict, list)):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
 
 
 def _now_ms() -> int:
     return int(time.time() * 1000)
 
 
-FINISHED = RunStatus.to_string(RunStatus.FINISHED)
-FAILED = RunStatus.to_string(RunStatus.FAILED)
-KILLED = RunStatus.to_string(RunStatus.KILLED)
-RUNNING = RunStatus.to_string(RunStatus.RUNNING)
-__all__ = ["FAILED", "FINISHED", "KILLED", "RUNNING", "Tracker", "TrialRun", "resolve_tracking_uri"]
+__all__ = [
+    "FAILED",
+    "FINISHED",
+    "KILLED",
+    "RUNNING",
+    "StoredCheckpoint",
+    "SweepRun",
+    "Tracker",
+    "TrialRun",
+    "resolve_tracking_uri",
+]

@@ -18,7 +18,10 @@ Algorithm = Literal["icem", "cem", "cem_mpc", "cem_pets"]
 BoundHandling = Literal["clip", "truncate", "truncate_2sigma"]
 
 # Table 4: budget (trajectories per environment step) -> (CEM-iterations, initial population N).
+# Budget 45 is chapter 4's low budget (Tables 9-12): Table 4's budget-50 schedule, 25 + 20
+# trajectories after decay, counted without the shifted elites.
 ICEM_BUDGETS: dict[int, tuple[int, int]] = {
+    45: (2, 25),
     50: (2, 25),
     70: (2, 40),
     100: (3, 40),
@@ -127,6 +130,9 @@ class PlannerConfig(BaseModel):
     """Execute the first action of the best sequence evaluated at this step instead of the mean's (section 3.2.3)."""
     add_mean: bool | None = None
     """Evaluate the mean sequence in the last CEM-iteration (B.4.3)."""
+    reevaluate_elites: bool = False
+    """Evaluate kept elites again in the next iteration instead of reusing their costs: needed when costs are
+    random (learned stochastic models, chapter 5); ground truth is deterministic, so reusing is exact there."""
 
     @model_validator(mode="before")
     @classmethod
@@ -192,7 +198,8 @@ class PlannerConfig(BaseModel):
     def trajectories_per_step(self) -> int:
         """Trajectories evaluated per environment step (the budget actually spent)."""
         shifted = self.reused_elites() if self.shift_elites else 0
-        return sum(self.population_sizes()) + shifted
+        reevaluated = self.reused_elites() * (self.iterations - 1) if self.keep_elites and self.reevaluate_elites else 0
+        return sum(self.population_sizes()) + shifted + reevaluated
 
 
 def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple[int, int]:

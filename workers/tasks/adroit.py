@@ -60,9 +60,6 @@ class _AdroitTask(GroundTruthTask):
     def rewards(self, model, batch):
         return self._reward(self._batch_quantities(model, batch))
 
-    def goal_achieved(self, model, batch):
-        return self._achieved(self._batch_quantities(model, batch))
-
     def step_env(self, env, action):
         observation, *_ = env.step(self.env_action(action))
         q = self._env_quantities(env)

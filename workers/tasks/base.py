@@ -68,8 +68,83 @@ class SimState:
     """Model fields the environment randomises per episode (e.g. Adroit body_pos)."""
     goal: np.ndarray | None = None
     """Goal kept by the environment in Python (Fetch), else None."""
-    time_step: int = 0
-    """Index of the environment step this state was captured at."""
+
+    def to_tree(self) -> dict[str, Any]:
+        """The state as checkpoint leaves (see workers.checkpoint)."""
+        tree: dict[str, Any] = {
+            "physics": self.physics,
+            "warmstart": self.warmstart,
+            "mocap_pos": self.mocap_pos,
+            "mocap_quat": self.mocap_quat,
+            "frames": self.frames,
+            "model_params": dict(self.model_params),
+        }
+        if self.goal is not None:
+            tree["goal"] = self.goal
+        return tree
+
+    @classmethod
+    def from_tree(cls, tree: dict[str, Any]) -> SimState:
+        return cls(
+            physics=np.asarray(tree["physics"]),
+            warmstart=np.asarray(tree["warmstart"]),
+            mocap_pos=np.asarray(tree["mocap_pos"]),
+            mocap_quat=np.asarray(tree["mocap_quat"]),
+            frames=np.asarray(tree["frames"]),
+            model_params={k: np.asarray(v) for k, v in (tree.get("model_params") or {}).items()},
+            goal=None if tree.get("goal") is None else np.asarray(tree["goal"]),
+        )
+
+
+@dataclass
+class SimStates:
+    """The simulator states of one episode, stacked: what relabeling needs to plan from any visited state.
+
+    Per-step fields are (T, ...) arrays; ``model_params`` and ``goal`` are
+    fixed within an episode and stored once.
+    """
+
+    physics: np.ndarray
+    warmstart: np.ndarray
+    mocap_pos: np.ndarray
+    mocap_quat: np.ndarray
+    frames: np.ndarray
+    model_params: dict[str, np.ndarray] = field(default_factory=dict)
+    goal: np.ndarray | None = None
+
+    PER_STEP: ClassVar[tuple[str, ...]] = ("physics", "warmstart", "mocap_pos", "mocap_quat", "frames")
+
+    @classmethod
+    def stack(cls, states: list[SimState]) -> SimStates:
+        if not states:
+            raise ValueError("no states to stack")
+        fields = {name: np.stack([getattr(s, name) for s in states]) for name in cls.PER_STEP}
+        return cls(**fields, model_params=dict(states[0].model_params), goal=states[0].goal)
+
+    def __len__(self) -> int:
+        return len(self.physics)
+
+    def __getitem__(self, index: int) -> SimState:
+        return SimState(
+            **{name: getattr(self, name)[index] for name in self.PER_STEP},
+            model_params=self.model_params,
+            goal=self.goal,
+        )
+
+    def to_tree(self) -> dict[str, Any]:
+        tree: dict[str, Any] = {name: getattr(self, name) for name in self.PER_STEP}
+        tree["model_params"] = dict(self.model_params)
+        if self.goal is not None:
+            tree["goal"] = self.goal
+        return tree
+
+    @classmethod
+    def from_tree(cls, tree: dict[str, Any]) -> SimStates:
+        return cls(
+            **{name: np.asarray(tree[name]) for name in cls.PER_STEP},
+            model_params={k: np.asarray(v) for k, v in (tree.get("model_params") or {}).items()},
+            goal=None if tree.get("goal") is None else np.asarray(tree["goal"]),
+        )
 
 
 class RolloutBatch(NamedTuple):
@@ -201,7 +276,7 @@ class GroundTruthTask(ABC):
         return model
 
     # ------------------------------------------------------------ states
-    def capture(self, env: gym.Env, time_step: int = 0) -> SimState:
+    def capture(self, env: gym.Env) -> SimState:
         """Snapshot the real environment (see :class:`SimState`)."""
         raw = env.unwrapped
         model, data = raw.model, raw.data
@@ -215,7 +290,6 @@ class GroundTruthTask(ABC):
             frames=self.read_frames(model, data),
             model_params={f: getattr(model, f).copy() for f in self.per_episode_model_fields},
             goal=self._goal(env),
-            time_step=time_step,
         )
 
     def restore(self, env: gym.Env, state: SimState) -> None:
@@ -278,6 +352,28 @@ class GroundTruthTask(ABC):
             offset += frame.size
         raise KeyError(f"task {self.name} has no {kind} frame {name!r}")
 
+    # -------------------------------------------------------- observations
+    def reset(self, env: gym.Env, seed: int) -> np.ndarray:
+        """Reset the real environment with ``seed``; return the observation vector (:meth:`observe`)."""
+        observation, _info = env.reset(seed=seed)
+        return self.observe(observation)
+
+    def observe(self, observation: Any) -> np.ndarray:
+        """The environment's observation as one flat vector: what a policy or a learned model sees.
+
+        Goal-conditioned environments (dict observations) give the observation
+        followed by the desired goal, the policy input of APEX on Fetch (Table 11).
+        """
+        if isinstance(observation, dict):
+            return np.concatenate([np.ravel(observation["observation"]), np.ravel(observation["desired_goal"])])
+        return np.asarray(observation, dtype=np.float64).ravel()
+
+    def goals(self, observation: Any) -> tuple[np.ndarray, np.ndarray] | None:
+        """(achieved goal, desired goal) of a goal-conditioned observation, else None (for HER)."""
+        if isinstance(observation, dict):
+            return np.asarray(observation["achieved_goal"]).copy(), np.asarray(observation["desired_goal"]).copy()
+        return None
+
     # ---------------------------------------------------------- controls
     def env_action(self, action: np.ndarray) -> np.ndarray:
         """Map a normalised action in [-1, 1] to the environment's action space."""
@@ -329,10 +425,6 @@ class GroundTruthTask(ABC):
     def costs(self, model: mujoco.MjModel, batch: RolloutBatch) -> np.ndarray:
         """(N, h) per-step planning costs: the negative reward unless a task shapes it."""
         return -self.rewards(model, batch)
-
-    def goal_achieved(self, model: mujoco.MjModel, batch: RolloutBatch) -> np.ndarray | None:
-        """(N, h) per-step goal condition, or None for tasks without success."""
-        return None
 
     def episode_success(self, goal_achieved: list[bool]) -> bool | None:
         """Success of a whole episode from its per-step goal flags."""

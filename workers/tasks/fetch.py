@@ -47,7 +47,6 @@ class FetchPickPlaceSparse(GroundTruthTask):
     """Largest mocap displacement per step (gymnasium-robotics Fetch)."""
     gripper_quat_delta = np.array([1.0, 0.0, 1.0, 0.0])
     """Added to the gripper quaternion to form the mocap orientation (fixed end-effector rotation)."""
-    distance_threshold = 0.05
 
     def _goal(self, env: gym.Env) -> np.ndarray:
         return env.unwrapped.goal.copy()
@@ -76,9 +75,6 @@ class FetchPickPlaceSparse(GroundTruthTask):
 
     def rewards(self, model, batch):
         return -self._distance(batch)
-
-    def goal_achieved(self, model, batch):
-        return self._distance(batch) < self.distance_threshold
 
     def episode_success(self, goal_achieved: list[bool]) -> bool | None:
         return bool(goal_achieved[-1]) if goal_achieved else False

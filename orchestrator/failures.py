@@ -1,0 +1,115 @@
+"""Why a trial's attempt ended, in three classes that call for different responses.
+
+* ``code_error``: the method's or task's code raised. Deterministic: a retry
+  from the last checkpoint is worth it only a few times (``retries``), and an
+  error that repeats identically is not retried again.
+* ``lost_process``: an actor, its process or its node went away (SIGKILL, the
+  kernel's or Ray's memory killer, a preempted node). Nothing is wrong with the
+  code: the trial resumes from its last checkpoint, with backoff, under its own
+  budget (``max_lost_processes``).
+* ``bad_checkpoint``: the program refused a checkpoint read back from the
+  store (corrupt, or not this trial's): the trial falls back to the one before.
+
+An unreachable tracking server is the third kind of fault the issue names; the
+MLflow client retries its requests itself, and the driver's logging waits.
+"""
+
+from __future__ import annotations
+
+import re
+import traceback
+from typing import NamedTuple
+
+CODE_ERROR = "code_error"
+LOST_PROCESS = "lost_process"
+BAD_CHECKPOINT = "bad_checkpoint"
+
+_MEMORY_WORDS = re.compile(r"out of memory|OOM|low on memory|memory usage|memory monitor", re.IGNORECASE)
+
+
+class Failure(NamedTuple):
+    """A classified failure of an attempt."""
+
+    kind: str
+    """code_error, lost_process or bad_checkpoint."""
+    cause: str
+    """One line for tags and the status command."""
+    detail: str
+    """The whole story: traceback or Ray's report."""
+    signature: str
+    """What identifies a repeat of the same error (exception type and traceback, without addresses)."""
+    memory: bool = False
+    """A memory kill (kernel OOM killer or Ray's memory monitor)."""
+
+
+def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
+    """Classify an exception raised by ``ray.get`` on a trial's call (or by the driver's own handling).
+
+    Args:
+        memory_mb: the trial runner's resident memory when last seen, for memory kills.
+    """
+    import ray.exceptions as rex
+
+    from workers.actors import CheckpointMismatchError
+    from workers.checkpoint import CheckpointError
+
+    inner = error
+    # A runner that got a dead worker's error re-raises it wrapped: look through the wrapping.
+    while isinstance(inner, rex.RayTaskError) and isinstance(inner.cause, rex.RayError):
+        inner = inner.cause
+    cause_of_task = inner.cause if isinstance(inner, rex.RayTaskError) else inner
+    if isinstance(cause_of_task, CheckpointError | CheckpointMismatchError):
+        return Failure(BAD_CHECKPOINT, _first_line(cause_of_task), _detail(error), _signature(error))
+    lost_types = (
+        rex.ActorDiedError,
+        rex.ActorUnavailableError,
+        rex.WorkerCrashedError,
+        rex.NodeDiedError,
+        rex.ObjectLostError,
+        rex.OutOfMemoryError,
+        rex.RayActorError,
+    )
+    if isinstance(inner, lost_types) and not getattr(inner, "actor_init_failed", False):
+        text = str(inner)
+        memory = isinstance(inner, rex.OutOfMemoryError) or bool(_MEMORY_WORDS.search(text))
+        cause = _lost_cause(inner, text, memory, memory_mb)
+        return Failure(LOST_PROCESS, cause, text, _signature(inner), memory)
+    detail = _detail(error)
+    return Failure(CODE_ERROR, _code_cause(cause_of_task, detail), detail, _signature(error))
+
+
+def _lost_cause(error: BaseException, text: str, memory: bool, memory_mb: float | None) -> str:
+    name = type(error).__name__
+    if memory:
+        used = f"; it was last seen using {memory_mb:,.0f} MB" if memory_mb else ""
+        return (
+            f"{name}: a process was killed for memory{used}. Run fewer trials at once (--max-concurrent), "
+            "give trials fewer threads (resources.threads_per_worker) or shrink the method's batch or buffer sizes"
+        )
+    preempted = " (node preempted)" if getattr(error, "preempted", False) else ""
+    first = next((line.strip() for line in text.splitlines() if line.strip()), name)
+    return f"{name}{preempted}: {first}"
+
+
+def _code_cause(error: BaseException, detail: str) -> str:
+    lines = [line for line in detail.strip().splitlines() if line.strip()]
+    last = lines[-1].strip() if lines else ""
+    return last or f"{type(error).__name__}: {error}"
+
+
+def _detail(error: BaseException) -> str:
+    text = getattr(error, "traceback_str", None) or str(error)
+    if not text.strip():
+        text = "".join(traceback.format_exception(error))
+    return text
+
+
+def _first_line(error: BaseException) -> str:
+    return (str(error).strip().splitlines() or [type(error).__name__])[0]
+
+
+def _signature(error: BaseException) -> str:
+    text = _detail(error)
+    # Process ids, addresses and actor ids differ between repeats of the same error.
+    text = re.sub(r"0x[0-9a-f]+|pid=\d+|ip=[\d.]+|[0-9a-f]{16,}", "", text)
+    return f"{type(error).__name__}:{text}"

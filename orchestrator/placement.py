@@ -1,0 +1,159 @@
+"""A trial's actors on Ray: placed together, all or nothing, and torn down together.
+
+A trial is a group: the ProgramRunner that hosts its program, and the workers
+of every role the program declared (workers/methods/base.py RoleSpec). The
+group is one Ray placement group with a bundle per actor, so it starts whole
+or waits whole; a trial never runs with part of its roles missing, and CPUs
+are counted across concurrent trials by Ray itself.
+
+Role workers reach the program as :class:`RayRoleGroup` objects: the plain
+RoleGroup interface of workers/, implemented with actor calls and the object
+store. Stateless workers (pure functions of their arguments) are restarted by
+Ray and their calls retried; a stateful worker is not restarted: its loss
+ends the round, and the trial resumes from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import ray
+from ray.util.placement_group import placement_group, remove_placement_group
+from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
+
+from workers import code_fingerprint
+from workers.actors import ProgramRunner
+from workers.methods import METHODS, RoleSpec, TrialSpec
+
+
+class RayPending:
+    """A call under way on an actor."""
+
+    def __init__(self, ref: ray.ObjectRef):
+        self.ref = ref
+
+    def result(self) -> Any:
+        return ray.get(self.ref)
+
+
+class RayRoleGroup:
+    """The actors of one role, behind the RoleGroup interface (picklable: it travels to the runner)."""
+
+    def __init__(self, name: str, actors: Sequence[Any]):
+        self.name = name
+        self.actors = list(actors)
+        self.size = len(self.actors)
+
+    def submit(self, member: int, method: str, *args: Any) -> RayPending:
+        return RayPending(getattr(self.actors[member], method).remote(*args))
+
+    def map(self, method: str, arguments: Sequence[tuple]) -> list[Any]:
+        """Each worker takes the next call as soon as it is free; results come back in order."""
+        if not self.actors:
+            raise RuntimeError(f"role {self.name!r} has no workers")
+        results: list[Any] = [None] * len(arguments)
+        queue = list(enumerate(arguments))
+        in_flight: dict[ray.ObjectRef, tuple[int, int]] = {}
+
+        def start(member: int) -> None:
+            index, args = queue.pop(0)
+            in_flight[getattr(self.actors[member], method).remote(*args)] = (index, member)
+
+        for member in range(min(self.size, len(queue))):
+            start(member)
+        while in_flight:
+            (ref,), _ = ray.wait(list(in_flight), num_returns=1)
+            index, member = in_flight.pop(ref)
+            results[index] = ray.get(ref)
+            if queue:
+                start(member)
+        return results
+
+    def share(self, value: Any) -> ray.ObjectRef:
+        """One copy in the object store; passed as an argument, Ray hands every worker the value."""
+        return ray.put(value)
+
+
+class TrialGroup:
+    """The placement group and actors of one trial attempt.
+
+    Args:
+        spec: the trial.
+        unit_cpus: CPUs of one unit of work (see Program.roles_for).
+        counts: worker counts per role from the sweep's resources.
+        max_restarts: restarts allowed to each stateless worker.
+        runner_class: the class hosting the program (tests substitute misbehaving ones).
+    """
+
+    def __init__(
+        self,
+        spec: TrialSpec,
+        unit_cpus: int,
+        counts: Mapping[str, int],
+        max_restarts: int,
+        runner_class: type = ProgramRunner,
+    ):
+        program = METHODS[spec.method]
+        self.spec = spec
+        self.roles: list[RoleSpec] = [r for r in program.roles_for(spec, unit_cpus, counts) if r.count]
+        self.runner_cpus = program.runner_cpus(spec, unit_cpus)
+        self.max_restarts = max_restarts
+        self.runner_class = runner_class
+        self.bundles = [{"CPU": float(self.runner_cpus)}]
+        for role in self.roles:
+            bundle = {"CPU": float(role.cpus)} | ({"GPU": float(role.gpus)} if role.gpus else {})
+            self.bundles += [dict(bundle) for _ in range(role.count)]
+        # PACK keeps a trial on one node when it fits (no network between its actors), else spreads it.
+        self.placement = placement_group(self.bundles, strategy="PACK")
+        self.runner = None
+        self.workers: dict[str, list[Any]] = {}
+
+    @property
+    def cpus(self) -> float:
+        return sum(bundle["CPU"] for bundle in self.bundles)
+
+    def ready(self) -> ray.ObjectRef:
+        """Resolves when every bundle of the group is reserved."""
+        return self.placement.ready()
+
+    def start(self) -> Any:
+        """Create the role workers and the runner in the reserved bundles; return the runner handle."""
+        bundle = 1
+        groups = {}
+        for role in self.roles:
+            restarts = 0 if role.stateful else self.max_restarts
+            actor_class = ray.remote(
+                num_cpus=role.cpus,
+                num_gpus=role.gpus,
+                max_restarts=restarts,
+                max_task_retries=0 if role.stateful else -1,
+            )(role.worker)
+            actors = []
+            for _ in range(role.count):
+                strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=bundle)
+                actors.append(actor_class.options(scheduling_strategy=strategy).remote(**role.kwargs))
+                bundle += 1
+            self.workers[role.name] = actors
+            groups[role.name] = RayRoleGroup(role.name, actors)
+        runner_actor = ray.remote(num_cpus=self.runner_cpus, max_concurrency=2, max_restarts=0)(self.runner_class)
+        strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=0)
+        self.runner = runner_actor.options(scheduling_strategy=strategy).remote(
+            self.spec, groups, self.runner_cpus, code_fingerprint()
+        )
+        return self.runner
+
+    def actors(self) -> list[Any]:
+        """Every actor of the group (runner first)."""
+        return ([self.runner] if self.runner is not None else []) + [a for group in self.workers.values() for a in group]
+
+    def teardown(self) -> None:
+        for actor in self.actors():
+            try:
+                ray.kill(actor)
+            except Exception:  # already gone
+                pass
+        try:
+            remove_placement_group(self.placement)
+        except Exception:  # Ray going down
+            pass
