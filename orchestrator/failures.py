@@ -97,10 +97,17 @@ def _code_cause(error: BaseException, detail: str) -> str:
     return last or f"{type(error).__name__}: {error}"
 
 
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
 def _detail(error: BaseException) -> str:
+    """The traceback as the process that raised saw it (Ray's task traceback), without terminal colours."""
     text = getattr(error, "traceback_str", None) or str(error)
     if not text.strip():
         text = "".join(traceback.format_exception(error))
+    text = _ANSI.sub("", text)
+    if "Traceback" not in text and 'File "' in text:
+        text = "Traceback (most recent call last), in the trial's actor:\n" + text
     return text
 
 

@@ -83,7 +83,6 @@ class TrialGroup:
         unit_cpus: CPUs of one unit of work (see Program.roles_for).
         counts: worker counts per role from the sweep's resources.
         max_restarts: restarts allowed to each stateless worker.
-        runner_class: the class hosting the program (tests substitute misbehaving ones).
     """
 
     def __init__(
@@ -92,14 +91,12 @@ class TrialGroup:
         unit_cpus: int,
         counts: Mapping[str, int],
         max_restarts: int,
-        runner_class: type = ProgramRunner,
     ):
         program = METHODS[spec.method]
         self.spec = spec
         self.roles: list[RoleSpec] = [r for r in program.roles_for(spec, unit_cpus, counts) if r.count]
         self.runner_cpus = program.runner_cpus(spec, unit_cpus)
         self.max_restarts = max_restarts
-        self.runner_class = runner_class
         self.bundles = [{"CPU": float(self.runner_cpus)}]
         for role in self.roles:
             bundle = {"CPU": float(role.cpus)} | ({"GPU": float(role.gpus)} if role.gpus else {})
@@ -136,7 +133,7 @@ class TrialGroup:
                 bundle += 1
             self.workers[role.name] = actors
             groups[role.name] = RayRoleGroup(role.name, actors)
-        runner_actor = ray.remote(num_cpus=self.runner_cpus, max_concurrency=2, max_restarts=0)(self.runner_class)
+        runner_actor = ray.remote(num_cpus=self.runner_cpus, max_concurrency=2, max_restarts=0)(ProgramRunner)
         strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=0)
         self.runner = runner_actor.options(scheduling_strategy=strategy).remote(
             self.spec, groups, self.runner_cpus, code_fingerprint()

@@ -33,7 +33,6 @@ from orchestrator.interrupt import InterruptRequest
 from orchestrator.placement import TrialGroup
 from orchestrator.sweep import LoadedSweep, Trial
 from orchestrator.tracking import FAILED, FINISHED, KILLED, Tracker, TrialRun
-from workers.actors import ProgramRunner
 from workers.methods import METHODS
 
 POLL_SECONDS = 0.5
@@ -160,7 +159,6 @@ class SweepScheduler:
         resume: bool = False,
         max_concurrent: int | None = None,
         display: Callable[[SweepState], None] | None = None,
-        runner_class: type = ProgramRunner,
     ):
         self.loaded = loaded
         self.sweep = loaded.sweep
@@ -170,7 +168,6 @@ class SweepScheduler:
         self.resume = resume
         self.max_concurrent = max_concurrent
         self.display = display
-        self.runner_class = runner_class
         self.experiment = self.sweep.tracking.experiment or self.sweep.name
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
         self._active: list[Attempt] = []
@@ -355,9 +352,7 @@ class SweepScheduler:
             )
         else:
             self.tracker.reopen_trial(state.run_id, state.attempts)
-        group = TrialGroup(
-            config.spec(), self._threads, self.counts, self.sweep.max_lost_processes, runner_class=self.runner_class
-        )
+        group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())
 
     def _advance(self, attempt: Attempt, value: Any) -> bool:

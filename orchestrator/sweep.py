@@ -588,7 +588,7 @@ def expand(sweep: Sweep, file: str = "<sweep>", root: yaml.Node | None = None) -
     variants = sweep.variants or [{}]
     count = len(variants) * grid_points * samples * sweep.seed_count()
     if count > sweep.max_trials:
-        where = ("seeds",) if grid_points * samples * len(variants) <= sweep.max_trials else ("parameters",)
+        where = ("seeds",) if sweep.seed_count() > sweep.max_trials else ("parameters",)
         line = _node_line(root, where)
         message = (
             f"the sweep expands to {count:,} trials, above max_trials = {sweep.max_trials}; "

@@ -8,6 +8,11 @@ import pytest
 
 os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+# The toy learning method of the service tests is a plugin, as a method kept outside icemlab would be;
+# Ray's worker processes inherit the variables and find it on the path.
+TESTS = os.path.dirname(os.path.abspath(__file__))
+os.environ["ICEMLAB_PLUGINS"] = "toy_method"
+os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [TESTS, os.environ.get("PYTHONPATH")]))
 
 
 @pytest.fixture(scope="session")

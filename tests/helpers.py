@@ -93,4 +93,4 @@ def sweep_runs(tracking_uri: str, name: str):
     parent = tracker.find_sweep_run(name, name)
     if parent is None:
         return None, []
-    return parent, tracker.trial_runs(parent.info.run_id)
+    return parent, tracker.trial_runs(parent.run_id)

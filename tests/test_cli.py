@@ -194,8 +194,8 @@ def test_random_parameters_are_repeatable(tmp_path):
     fields = dict(
         parameters={"planner.sigma_init": {"distribution": "uniform", "low": 0.2, "high": 0.8}}, num_samples=3
     )
-    first = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
-    second = [t.config.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
+    first = [t.config.settings.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
+    second = [t.config.settings.planner.sigma_init for t in load_sweep(write_sweep(tmp_path, "r", **fields)).trials]
     assert first == second and len(set(first)) == 3 and all(0.2 <= s <= 0.8 for s in first)
 
 
@@ -215,7 +215,7 @@ def test_variants_run_side_by_side_with_grids_and_seeds(tmp_path):
     assert len(trials) == 3 * 2 * 2
     by_variant = {}
     for trial in trials:
-        by_variant.setdefault(trial.overrides["variant"], []).append(trial.config.planner)
+        by_variant.setdefault(trial.variant, []).append(trial.config.settings.planner)
     assert {p.noise_beta for p in by_variant["full"]} == {1.0}  # point_reach's beta
     assert {p.noise_beta for p in by_variant["white"]} == {0.0}
     assert {p.algorithm for p in by_variant["mpc"]} == {"cem_mpc"}

@@ -1,40 +1,86 @@
-"""The MPC loop and the actor shells, in-process (no Ray)."""
+"""The MPC loop, the MPC program and the runner, in-process (no Ray)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from orchestrator.pool import SimulationPool
-from workers import code_fingerprint
-from workers.actors import TrialRunner, episode_seed
-from workers.planning import PlannerConfig
+from workers import checkpoint, code_fingerprint
+from workers.actors import CheckpointMismatchError, ProgramRunner
+from workers.methods import METHODS, LocalRoleGroup, MpcSettings, TrialSpec, run_locally
+from workers.methods.mpc import episode_seed
+from workers.mpc import MpcEpisode, run_episode
+from workers.planning import CEMPlanner, PlannerConfig
+from workers.simulation import SimulationPool, SimulationWorker
 from workers.tasks import make_task
 
 
-def config(task_name: str, **overrides) -> PlannerConfig:
-    settings = dict(budget=50, horizon=10) | overrides
-    return PlannerConfig(**settings).resolved(make_task(task_name).colored_noise_beta)
+def trial(task_name: str = "point_reach", seed: int = 3, **overrides) -> TrialSpec:
+    settings = dict(planner=dict(budget=50, horizon=10), max_steps=12) | overrides
+    resolved = METHODS["mpc"].resolve(MpcSettings(**settings), make_task(task_name))
+    return TrialSpec("mpc", task_name, resolved, seed)
+
+
+def rewards(reports) -> list[float]:
+    return [r for report in reports for r in report.series["step/reward"]]
 
 
 def test_episode_report_is_consistent():
-    runner = TrialRunner("point_reach", config("point_reach"), seed=3, max_steps=12)
-    report = runner.run_episode(0).result
-    assert len(report.rewards) == len(report.planning_seconds) == len(report.trajectories) == 12
-    assert report.episode_return == pytest.approx(report.rewards.sum())
-    assert report.success is None and report.goal_steps is None  # the tiny task has no success criterion
-    assert np.all(report.planning_seconds > 0) and report.simulated_steps_per_second > 0
+    (report,) = run_locally(METHODS["mpc"], trial())
+    assert report.done and len(report.series["step/reward"]) == 12
+    assert report.metrics["episode_return"] == pytest.approx(sum(report.series["step/reward"]))
+    assert "success" not in report.metrics  # the tiny task has no success criterion
+    assert report.metrics["simulated_steps_per_second"] > 0
     # iCEM at budget 50: 25 + 20 trajectories, plus 3 shifted elites from the second step on
-    assert report.trajectories[0] == 45 and set(report.trajectories[1:]) == {48}
-    assert runner.progress() == {"episode": 0, "step": 12, "steps": 12}
+    trajectories = report.series["step/trajectories"]
+    assert trajectories[0] == 45 and set(trajectories[1:]) == {48}
+    assert report.summary["mean_return"] == pytest.approx(report.metrics["episode_return"])
+    assert {a.path for a in report.artifacts} == {"episodes/episode_000.png", "episodes/episode_000.npz"}
+
+
+def test_rounds_split_episodes_into_segments_with_steps_counted_across_episodes():
+    reports = run_locally(METHODS["mpc"], trial(max_steps=10, round_steps=4, episodes=2))
+    assert [len(r.series["step/reward"]) for r in reports] == [4, 4, 2, 4, 4, 2]
+    assert [r.series_start for r in reports] == [0, 4, 8, 10, 14, 18]
+    assert [bool(r.metrics) for r in reports] == [False, False, True, False, False, True]
+    assert [r.step for r in reports if r.metrics] == [0, 1]
+    assert [r.done for r in reports] == [False] * 5 + [True]
 
 
 def test_same_seed_same_episode_and_episodes_differ():
-    runner = TrialRunner("point_reach", config("point_reach"), seed=5, max_steps=10)
-    first, again, second = runner.run_episode(0), runner.run_episode(0), runner.run_episode(1)
-    np.testing.assert_array_equal(first.result.rewards, again.result.rewards)
-    assert second.seed == episode_seed(5, 1) != first.seed == 5
-    assert not np.array_equal(first.result.rewards, second.result.rewards)
+    first = run_locally(METHODS["mpc"], trial(seed=5, episodes=2, max_steps=10))
+    again = run_locally(METHODS["mpc"], trial(seed=5, episodes=2, max_steps=10))
+    assert rewards(first) == rewards(again)
+    assert episode_seed(5, 0) == 5 and episode_seed(5, 1) != 5
+    assert first[0].metrics["episode_return"] != first[1].metrics["episode_return"]
+
+
+@pytest.mark.parametrize("task_name", ["point_reach", "halfcheetah_running", "fetch_pick_place_sparse"])
+def test_restored_checkpoint_continues_bit_for_bit(task_name):
+    """A runner that restores a mid-episode checkpoint produces exactly the uninterrupted trial."""
+    spec = trial(task_name, seed=1, max_steps=9, round_steps=4, episodes=2)
+    uninterrupted = ProgramRunner(spec, {}, 1)
+    total = uninterrupted.total_rounds()
+    expected = [uninterrupted.run_round(i)[0] for i in range(total)]
+    first = ProgramRunner(spec, {}, 1)
+    before = [first.run_round(i) for i in range(4)]  # mid-way through the second episode
+    resumed = ProgramRunner(spec, {}, 1)
+    assert resumed.restore(before[-1][1]) == 4
+    after = [resumed.run_round(i)[0] for i in range(4, total)]
+    assert rewards([r for r, _ in before] + after) == rewards(expected)
+    assert after[-1].summary["mean_return"] == expected[-1].summary["mean_return"]
+
+
+def test_runner_refuses_rounds_out_of_order_and_foreign_checkpoints():
+    runner = ProgramRunner(trial(), {}, 1)
+    with pytest.raises(RuntimeError, match="round 1"):
+        runner.run_round(1)
+    _, data = runner.run_round(0)
+    other = ProgramRunner(trial(seed=4), {}, 1)
+    with pytest.raises(CheckpointMismatchError):
+        other.restore(data)
+    with pytest.raises(checkpoint.CheckpointError):
+        other.restore(b"not a checkpoint")
 
 
 def test_planning_beats_doing_nothing():
@@ -43,28 +89,62 @@ def test_planning_beats_doing_nothing():
     env = task.make_env()
     env.reset(seed=2)
     idle = sum(task.step_env(env, np.zeros(task.action_dim)).reward for _ in range(30))
-    planned = TrialRunner("point_reach", config("point_reach"), seed=2, max_steps=30).run_episode(0).result
-    assert planned.episode_return > idle + 1.0
+    (report,) = run_locally(METHODS["mpc"], trial(seed=2, max_steps=30, round_steps=30))
+    assert report.metrics["episode_return"] > idle + 1.0
 
 
-def test_pool_with_a_co_located_worker_needs_no_ray():
-    """The default SimulationPool layout evaluates in-process and gives the same episode."""
-    planner = config("point_reach")
-    pooled = TrialRunner("point_reach", planner, 4, SimulationPool("point_reach", 1, []), max_steps=8).run_episode(0)
-    direct = TrialRunner("point_reach", planner, 4, max_steps=8).run_episode(0)
-    np.testing.assert_array_equal(pooled.result.rewards, direct.result.rewards)
+def test_pool_splits_batches_over_workers_without_changing_costs():
+    """A co-located worker plus two in-process 'remote' ones give the costs of a single worker."""
+    task = make_task("halfcheetah_running")
+    remote = LocalRoleGroup("simulation", [SimulationWorker("halfcheetah_running") for _ in range(2)])
+    pooled, single = SimulationPool(task.name, 1, remote), SimulationPool(task.name, 1)
+    env = task.make_env()
+    env.reset(seed=0)
+    from workers.mpc import PlanningState
+
+    state = PlanningState(np.zeros(17), task.capture(env))
+    actions = np.random.default_rng(0).uniform(-1, 1, (25, 5, task.action_dim))
+    np.testing.assert_array_equal(pooled.evaluate(state, actions), single.evaluate(state, actions))
 
 
 def test_success_tasks_count_goal_steps():
-    runner = TrialRunner("fetch_pick_place_sparse", config("fetch_pick_place_sparse"), seed=0, max_steps=2)
-    report = runner.run_episode(0).result
-    assert report.success in (True, False) and report.goal_steps in (0, 1, 2)
+    """goal_steps is the number of steps on which the environment reported its goal condition."""
+    task = make_task("fetch_pick_place_sparse")
+    env = task.make_env()
+    config = PlannerConfig(budget=50, horizon=5).resolved(task.colored_noise_beta)
+    pool = SimulationPool(task.name, 1)
+    episode = MpcEpisode(task, env, CEMPlanner(config, task.action_dim, seed=0), pool, seed=0, steps=4)
+    flags = []
+    episode.run(on_step=lambda record: flags.append(record.goal_achieved))
+    result = episode.result()
+    assert result.goal_steps == sum(flags) and result.success == flags[-1]
+    # Place the box on its target: every later step is a goal step and the episode succeeds.
+    env.unwrapped._utils.set_joint_qpos(env.unwrapped.model, env.unwrapped.data, "object0:joint",
+                                        np.concatenate([env.unwrapped.goal, [1, 0, 0, 0]]))  # fmt: skip
+    env.unwrapped.data.qvel[:] = 0
+    import mujoco
+
+    mujoco.mj_forward(env.unwrapped.model, env.unwrapped.data)
+    episode.steps = 6
+    episode.run()
+    result = episode.result()
+    assert result.goal_steps == sum(flags) + 2 and result.success
+
+
+def test_run_episode_matches_the_program():
+    spec = trial(seed=7)
+    task = make_task(spec.task)
+    env = task.make_env()
+    planner = CEMPlanner(spec.settings.planner, task.action_dim, seed=7)
+    result = run_episode(task, env, planner, SimulationPool(task.name, 1), seed=7, steps=12)
+    (report,) = run_locally(METHODS["mpc"], spec)
+    assert list(result.rewards) == list(report.series["step/reward"])
 
 
 def test_runner_refuses_code_that_differs_from_the_driver():
     with pytest.raises(RuntimeError, match="different icemlab code"):
-        TrialRunner("point_reach", config("point_reach"), seed=0, expected_code="0" * 16)
-    TrialRunner("point_reach", config("point_reach"), seed=0, expected_code=code_fingerprint(), max_steps=1)
+        ProgramRunner(trial(), {}, 1, expected_code="0" * 16)
+    ProgramRunner(trial(), {}, 1, expected_code=code_fingerprint())
 
 
 @pytest.mark.parametrize(

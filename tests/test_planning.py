@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from workers.planning import CEM_BUDGETS, ICEM_BUDGETS, CEMPlanner, PlannerConfig, colored_noise, truncated_normal
+from workers.planning import CEMPlanner, PlannerConfig, colored_noise, truncated_normal
+from workers.planning.icem import CostBatch, main_cost
 
 
 # ------------------------------------------------------------------ noise
@@ -55,15 +56,28 @@ def test_truncated_normal_stays_in_bounds_and_matches_moments():
 
 
 # ---------------------------------------------------------------- budgets
-@pytest.mark.parametrize("budget", sorted(ICEM_BUDGETS))
+# Table 4 of the thesis, written out: budget -> (iterations, initial N) for iCEM and for the CEM baselines.
+TABLE_4 = {
+    50: ((2, 25), (2, 25)), 70: ((2, 40), (2, 35)), 100: ((3, 40), (2, 50)), 150: ((3, 60), (2, 75)),
+    200: ((4, 65), (3, 66)), 250: ((4, 85), (3, 83)), 300: ((4, 100), (3, 100)), 400: ((5, 120), (4, 100)),
+    500: ((5, 150), (4, 125)), 1000: ((6, 270), (4, 250)), 2000: ((8, 480), (6, 333)), 4000: ((10, 900), (8, 500)),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("budget", sorted(TABLE_4))
 def test_budget_table_4(budget):
     icem = PlannerConfig(algorithm="icem", budget=budget).resolved(task_beta=2.0)
-    assert (icem.iterations, icem.population) == ICEM_BUDGETS[budget]
     cem = PlannerConfig(algorithm="cem_mpc", budget=budget).resolved(task_beta=2.0)
-    assert (cem.iterations, cem.population) == CEM_BUDGETS[budget]
+    assert ((icem.iterations, icem.population), (cem.iterations, cem.population)) == TABLE_4[budget]
     # Table 4's settings spend roughly the nominal budget (within 8%).
     assert abs(icem.trajectories_per_step() - budget) <= 0.08 * budget
     assert abs(cem.trajectories_per_step() - budget) <= 0.08 * budget
+
+
+def test_chapter_4_budget_45_is_two_iterations_of_25_and_20():
+    config = PlannerConfig(algorithm="icem", budget=45).resolved(task_beta=0.25)
+    assert (config.iterations, config.population) == (2, 25)
+    assert config.population_sizes() == [25, 20]
 
 
 def test_budget_100_is_40_32_25_plus_three_shifted_elites():
@@ -118,9 +132,9 @@ def quadratic_cost(actions: np.ndarray) -> np.ndarray:
     return np.sum((actions - TARGET) ** 2, axis=(1, 2))
 
 
-def make(algorithm="icem", seed=0, **overrides):
+def make(algorithm="icem", seed=0, objective=main_cost, **overrides):
     config = PlannerConfig(algorithm=algorithm, budget=100, horizon=10, **overrides).resolved(task_beta=1.0)
-    return CEMPlanner(config, action_dim=2, seed=seed)
+    return CEMPlanner(config, action_dim=2, seed=seed, objective=objective)
 
 
 class Recorder:
@@ -211,18 +225,149 @@ def test_plain_cem_restarts_from_zero_mean():
     np.testing.assert_array_equal(planner.mean, np.zeros((10, 2)))
 
 
-def test_keep_elites_carries_the_best_into_later_iterations():
-    """With keep-elites, the best cost never gets worse from one iteration to the next."""
-    costs_per_iteration = []
+class CandidateLog:
+    """An objective that records every CEM-iteration's candidates (samples and kept elites) and their costs."""
 
-    def cost(actions):
-        c = quadratic_cost(actions)
-        costs_per_iteration.append(c.min())
-        return c
+    def __init__(self):
+        self.batches: list[CostBatch] = []
 
-    planner = make("icem", keep_elites=True, elite_fraction=0.3)
-    result = planner.plan(cost)
-    assert result.best_cost <= min(costs_per_iteration)
+    def __call__(self, batch: CostBatch, iteration: int) -> np.ndarray:
+        self.batches.append(batch)
+        return main_cost(batch, iteration)
+
+
+def spy_sampling(planner: CEMPlanner, monkeypatch) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    """Record the (mean, std, count) of every sampling call of the planner."""
+    calls = []
+    sample = planner._sample
+    monkeypatch.setattr(
+        planner, "_sample", lambda mean, std, count: calls.append((mean.copy(), std.copy(), count)) or sample(mean, std, count)
+    )
+    return calls
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_keep_elites_adds_the_best_of_the_last_iteration_with_their_costs(keep):
+    """Section 3.2.2: iteration i + 1 ranks its samples together with the best zeta K elites of iteration i."""
+    log = CandidateLog()
+    planner = make("icem", keep_elites=keep, shift_elites=False)
+    planner.objective = log
+    recorder = Recorder()
+    planner.plan(recorder)
+    sizes = [len(b.costs) for b in log.batches]
+    evaluated = [len(b) for b in recorder.batches]
+    if not keep:
+        assert sizes == evaluated == [40, 32, 25]
+        return
+    assert evaluated == [40, 32, 25] and sizes == [40, 35, 28]  # 3 = floor(0.3 * 10) kept, not re-simulated
+    for before, after in zip(log.batches, log.batches[1:]):
+        best_before = np.sort(before.costs)[:3]
+        np.testing.assert_array_equal(np.sort(after.costs[-3:]), best_before)
+
+
+def test_reevaluated_elites_are_simulated_again():
+    recorder = Recorder()
+    planner = make("icem", shift_elites=False, reevaluate_elites=True)
+    planner.plan(recorder)
+    assert [len(b) for b in recorder.batches] == [40, 35, 28]
+    first_best = recorder.batches[0][np.argsort(quadratic_cost(recorder.batches[0]))[:3]]
+    np.testing.assert_array_equal(recorder.batches[1][-3:], first_best)
+    assert planner.config.trajectories_per_step() == 40 + 35 + 28
+
+
+@pytest.mark.parametrize("algorithm", ["icem", "cem_mpc", "cem"])
+def test_refit_moves_mean_and_std_to_the_elites_with_momentum(algorithm, monkeypatch):
+    """mu <- alpha mu + (1 - alpha) mean(elites), sigma likewise (section 3.1.1; alpha 0 for plain CEM)."""
+    log = CandidateLog()
+    planner = make(algorithm, shift_elites=False)
+    planner.objective = log
+    calls = spy_sampling(planner, monkeypatch)
+    candidates = []
+    cost = Recorder()
+    planner.plan(lambda actions: candidates.append(actions.copy()) or cost(actions))
+    alpha = planner.config.momentum
+    assert alpha == (0.0 if algorithm == "cem" else 0.1)
+    kept = None
+    for i in range(len(calls) - 1):
+        samples = candidates[i] if kept is None else np.concatenate([candidates[i], kept])
+        order = np.argsort(log.batches[i].costs, kind="stable")[:10]
+        elites = samples[order]
+        mean, std, _ = calls[i]
+        next_mean, next_std, _ = calls[i + 1]
+        np.testing.assert_allclose(next_mean, alpha * mean + (1 - alpha) * elites.mean(axis=0), atol=1e-12)
+        np.testing.assert_allclose(next_std, alpha * std + (1 - alpha) * elites.std(axis=0), atol=1e-12)
+        kept = elites[: planner.reused] if planner.config.keep_elites else None
+
+
+def test_sigma_is_reset_and_the_shifted_mean_starts_the_next_step(monkeypatch):
+    planner = make("icem")
+    calls = spy_sampling(planner, monkeypatch)
+    planner.plan(quadratic_cost)
+    shifted = planner.mean.copy()
+    count_first = len(calls)
+    planner.plan(quadratic_cost)
+    mean, std, _ = calls[count_first]
+    np.testing.assert_array_equal(mean, shifted)  # eq. 32: the next step starts from the shifted mean
+    np.testing.assert_array_equal(std, np.full((10, 2), 0.5))  # sigma_init at every step
+
+
+def test_shift_elites_moves_last_steps_elites_one_step_in_time():
+    planner = make("icem")
+    planner.plan(quadratic_cost)
+    previous = planner.memory.elites.copy()
+    recorder = Recorder()
+    planner.plan(recorder)
+    shifted = recorder.batches[0][-3:]
+    np.testing.assert_array_equal(shifted[:, :-1], previous[:3, 1:])  # the best 3 elites, shifted
+    assert not np.array_equal(shifted[:, -1], previous[:3, -1])  # a fresh random last action
+
+
+def test_proposals_replace_samples_of_the_last_iteration_only():
+    proposal = np.full((1, 10, 2), 0.25)
+    recorder = Recorder()
+    make("icem", shift_elites=False).plan(recorder, proposals=proposal)
+    last = recorder.batches[-1]
+    np.testing.assert_array_equal(last[1], proposal[0])  # after the mean (sample 0)
+    assert len(last) == 25  # the budget is unchanged
+    for batch in recorder.batches[:-1]:
+        assert not any(np.array_equal(row, proposal[0]) for row in batch)
+
+
+def test_particle_costs_are_reduced_by_their_aggregate():
+    """A stochastic evaluator's (N, P) costs are averaged per sequence (PETS), or their worst case taken."""
+    particles = np.random.default_rng(0).normal(size=(30, 5))
+    assert np.array_equal(CostBatch(particles).main(), particles.mean(axis=1))
+    assert np.array_equal(CostBatch(particles, "max").main(), particles.max(axis=1))
+    planner = make("icem")
+    result = planner.plan(lambda a: CostBatch(np.repeat(quadratic_cost(a)[:, None], 4, axis=1) + np.arange(4)))
+    assert result.best_cost == pytest.approx(quadratic_cost(result.plan[None])[0] + 1.5)
+
+
+def test_objective_weighs_cost_components_and_reports_the_best_ones():
+    """An objective sees every component, also of kept elites, and decides the ranking (APEX guidance)."""
+
+    def evaluate(actions):
+        return CostBatch(quadratic_cost(actions), components={"guide": np.abs(actions).sum(axis=(1, 2))})
+
+    seen = []
+
+    def objective(batch, iteration):
+        seen.append(len(batch.components["guide"]) == len(batch.costs))
+        return batch.costs + 100.0 * batch.components["guide"]
+
+    planner = make("icem", objective=objective)
+    result = planner.plan(evaluate)
+    assert all(seen) and set(result.components) == {"guide"}
+    plain = make("icem").plan(evaluate)
+    assert result.components["guide"] < plain.components["guide"]  # the heavy weight pulls actions to zero
+
+
+def test_planner_state_round_trip_continues_identically():
+    a = make("icem", seed=3)
+    a.plan(quadratic_cost)
+    b = make("icem", seed=99)
+    b.load_state_dict(a.state_dict())
+    np.testing.assert_array_equal(a.plan(quadratic_cost).action, b.plan(quadratic_cost).action)
 
 
 def test_pets_caps_sigma_at_half_the_distance_to_the_bounds():

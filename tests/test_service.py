@@ -1,12 +1,15 @@
 """The service end to end: real Ray, real MLflow (SQLite), real faults.
 
 * a sweep through the CLI lands in MLflow as a parent run with one FINISHED
-  child per trial, params, metrics and artifacts;
-* a trial that raises ends FAILED with its error, is retried, and the sweep goes on;
-* a SimulationWorker killed mid-episode is restarted and the episode completes
-  with the same result as without the kill;
-* a driver killed with SIGKILL loses nothing: ``--resume`` runs only the
-  missing trials and each trial ends with exactly one FINISHED run;
+  child per trial, params, metrics, artifacts and checkpoints;
+* a method whose code raises fails after its retries, each resuming from the
+  last checkpoint, with the traceback in MLflow and in ``icemlab status``;
+* a killed stateless worker (SimulationWorker) is restarted and its call
+  retried; a killed stateful one (a trainer) costs the round in flight, and
+  the trial resumes from its last checkpoint with the same final result;
+* a driver killed with SIGKILL loses nothing: ``--resume`` continues every
+  trial from its last completed round, no round or metric step twice;
+* a trial's actors are placed all at once or not at all;
 * Ctrl-C stops the sweep and marks the unfinished runs KILLED.
 """
 
@@ -16,38 +19,48 @@ import os
 import signal
 import threading
 import time
+from collections import Counter
 
-import faulty
 import numpy as np
 import pytest
 import ray
+import toy_method
 from helpers import cli, kill_group, start_cli, sweep_runs, wait_for, write_sweep
 
-from orchestrator.scheduler import SweepScheduler
+from orchestrator.placement import TrialGroup
+from orchestrator.scheduler import ResourceError, SweepScheduler
 from orchestrator.sweep import load_sweep
 from orchestrator.tracking import FAILED, FINISHED, KILLED, RUNNING, Tracker, default_tracking_uri
-from workers.actors import TrialRunner
+from workers.methods import METHODS, run_locally
 
 
 @pytest.fixture(scope="module")
 def local_ray():
     """One local Ray for the in-process scheduler tests of this module."""
-    ray.cloudpickle.register_pickle_by_value(faulty)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
 
 
-def current(children):
-    """Child runs that are a trial's latest attempt."""
-    return [c for c in children if not c.superseded]
+def toy_sweep(directory, name, seeds=(0,), retries=1, **settings):
+    base = {"rounds": 4, "steps": 10} | settings
+    return write_sweep(directory, name, method="toy", base=base, algorithm=None, seeds=list(seeds), retries=retries)
+
+
+def history(tracker: Tracker, run_id: str, key: str) -> list[tuple[int, float]]:
+    return sorted(tracker.metric_history(run_id, key))
+
+
+def uninterrupted_toy_losses(sweep) -> list[float]:
+    trial = load_sweep(sweep).trials[0].config
+    return [r.metrics["loss"] for r in run_locally(METHODS["toy"], trial.spec())]
 
 
 def test_cli_sweep_lands_in_mlflow(tmp_path):
     sweep = write_sweep(
         tmp_path,
         "landing",
-        base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 8, "episodes": 2},
+        base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 8, "episodes": 2, "round_steps": 5},
         parameters={"algorithm": {"values": ["icem", "cem_mpc"]}},
     )
     result = cli("run", str(sweep), "--quiet", cwd=tmp_path)
@@ -55,43 +68,53 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     assert "point_reach" in result.stdout  # the summary table
 
     parent, children = sweep_runs(default_tracking_uri(tmp_path), "landing")
-    assert parent.info.status == FINISHED
+    assert parent.status == FINISHED
     assert {c.status for c in children} == {FINISHED} and len(children) == 2
-    keys = {t.key for t in load_sweep(sweep).trials}
-    assert {c.trial_key for c in children} == keys
+    assert {c.trial_key for c in children} == {t.key for t in load_sweep(sweep).trials}
     for child in children:
         assert child.params["task"] == "point_reach" and child.params["planner.budget"] == "50"
+        assert child.params["method"] == "mpc" and child.tags["method"] == "mpc"
         assert child.tags["task"] == "point_reach" and child.tags["seed"] == "0"
-        assert child.tags["algorithm"] in ("icem", "cem_mpc")
+        assert child.tags["algorithm"] in ("icem", "cem_mpc") and child.tags["budget"] == "50"
         assert np.isfinite(child.metrics["episode_return"]) and child.metrics["simulated_steps_per_second"] > 0
     tracker = Tracker(default_tracking_uri(tmp_path))
-    steps = tracker.metric_history(children[0].run_id, "step/reward")
-    assert sorted(s for s, _ in steps) == list(range(16))  # 2 episodes x 8 steps, counted across episodes
-    episodes = tracker.metric_history(children[0].run_id, "episode_return")
-    assert sorted(s for s, _ in episodes) == [0, 1]
+    run_id = children[0].run_id
+    steps = history(tracker, run_id, "step/reward")
+    assert [s for s, _ in steps] == list(range(16))  # 2 episodes x 8 steps, counted across episodes, once each
+    assert [s for s, _ in history(tracker, run_id, "icemlab.round")] == [0, 1, 2, 3]  # 2 rounds per episode
+    episodes = history(tracker, run_id, "episode_return")
+    assert [s for s, _ in episodes] == [0, 1]
     assert children[0].metrics["mean_return"] == pytest.approx(np.mean([v for _, v in episodes]))
-    parent_files = {f.path for f in tracker.client.list_artifacts(parent.info.run_id)}
-    assert {"sweep.yaml", "summary.csv", "summary.txt", "budget_curve.png"} <= parent_files
-    episode_files = {f.path for f in tracker.client.list_artifacts(children[0].run_id, "episodes")}
-    assert episode_files == {"episodes/episode_000.png", "episodes/episode_001.png"}
+    assert {"sweep.yaml", "summary.csv", "summary.txt", "budget_curve.png"} <= set(tracker.list_files(parent.run_id))
+    assert set(tracker.list_files(run_id, "episodes")) == {
+        f"episodes/episode_00{i}.{ext}" for i in (0, 1) for ext in ("png", "npz")
+    }
+    assert {"trial.json", "checkpoints"} <= set(tracker.list_files(run_id))
 
 
-def test_failing_trial_is_marked_failed_and_the_sweep_goes_on(tmp_path, local_ray):
-    sweep = write_sweep(tmp_path, "failing", seeds=[0, 1], retries=1)
+def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local_ray):
+    """A method that raises on round 2: two attempts (the repeat is identical), rounds 0-1 logged once."""
+    sweep = toy_sweep(tmp_path, "raising", retries=3, fail_on_round=2)
     tracker = Tracker(default_tracking_uri(tmp_path))
-    outcome = SweepScheduler(load_sweep(sweep), tracker, runner_class=faulty.FailingRunner).run()
-    assert (outcome.finished, outcome.failed) == (1, 1)
+    started = time.monotonic()
+    outcome = SweepScheduler(load_sweep(sweep), tracker).run()
+    assert (outcome.finished, outcome.failed) == (0, 1)
+    assert time.monotonic() - started < 60  # no lost-process backoff was spent
 
-    parent, children = sweep_runs(tracker.uri, "failing")
-    assert parent.info.status == FINISHED and parent.data.tags["icemlab.failed_trials"] == "1"
-    by_seed = {}
-    for child in children:
-        by_seed.setdefault(child.tags["seed"], []).append(child)
-    assert [c.status for c in by_seed["0"]] == [FINISHED]
-    failed_attempts = sorted(by_seed["1"], key=lambda c: c.tags["icemlab.attempt"])
-    assert [c.status for c in failed_attempts] == [FAILED, FAILED]  # first try + one retry
-    assert failed_attempts[0].superseded and not failed_attempts[1].superseded
-    assert all("injected failure" in c.tags["icemlab.error"] for c in failed_attempts)
+    parent, (child,) = sweep_runs(tracker.uri, "raising")
+    assert parent.tags["icemlab.failed_trials"] == "1"
+    assert child.status == FAILED and child.attempts == 2  # retries 3, but the identical repeat is not retried
+    assert child.error_class == "code_error" and "fails on round 2" in child.error
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1]  # not repeated
+    files = tracker.list_files(child.run_id, "failures")
+    assert [f.rsplit("_", 2)[-2:] for f in sorted(files)] == [["code", "error.txt"]] * 2
+    first = (tmp_path / "first.txt")
+    tracker.download(child.run_id, sorted(files)[0], tmp_path).rename(first)
+    assert "Traceback" in first.read_text() and "toy_method.py" in first.read_text()
+    assert "failures/lost_process" not in child.metrics
+
+    status = cli("status", str(sweep), cwd=tmp_path)
+    assert "FAILED" in status.stdout and "code_error: ValueError: toy method fails on round 2" in status.stdout
 
 
 def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_path, local_ray):
@@ -109,72 +132,143 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
     killed = {}
 
     def kill_worker_mid_episode():
-        def running_at_step():
-            active = getattr(scheduler, "_active", [])
-            return active[0] if active and active[0].progress.get("step", 0) >= 3 else None
+        def running_worker():
+            active = scheduler._active
+            if active and active[0].phase == "running" and active[0].progress.get("fraction", 0) > 0.1:
+                return active[0].group.workers["simulation"][0]
+            return None
 
-        active = wait_for(running_at_step, timeout=120, interval=0.05, what="the trial to reach step 3")
-        pid = ray.get(active.workers[0].pid.remote())
+        worker = wait_for(running_worker, timeout=120, interval=0.05, what="the trial to be under way")
+        pid = ray.get(worker.pid.remote())
         os.kill(pid, signal.SIGKILL)
-        killed.update(pid=pid, step=active.progress["step"])
+        killed.update(pid=pid, fraction=scheduler._active[0].progress["fraction"])
 
     killer = threading.Thread(target=kill_worker_mid_episode, daemon=True)
     killer.start()
     outcome = scheduler.run()
     killer.join(timeout=5)
     assert killed, "the worker was never killed"
-    assert killed["step"] < 30  # mid-episode
+    assert killed["fraction"] < 1  # mid-episode
     assert (outcome.finished, outcome.failed) == (1, 0)
 
-    _, children = sweep_runs(tracker.uri, "worker_kill")
-    (child,) = children
-    assert child.status == FINISHED
+    _, (child,) = sweep_runs(tracker.uri, "worker_kill")
+    assert child.status == FINISHED and child.attempts == 1  # absorbed by the restart, no trial restart
     assert child.metrics["simulation_worker_restarts"] >= 1  # the failure is visible in MLflow
     # Costs are a pure function of state and actions, so the retried call changes nothing.
-    trial = loaded.trials[0].config
-    undisturbed = TrialRunner(trial.task, trial.planner, trial.seed, max_steps=trial.max_steps).run_episode(0)
-    assert child.metrics["episode_return"] == pytest.approx(undisturbed.result.episode_return, abs=1e-9)
+    (undisturbed,) = run_locally(METHODS["mpc"], loaded.trials[0].config.spec())
+    assert child.metrics["episode_return"] == undisturbed.metrics["episode_return"]
 
 
-def test_driver_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path):
-    sweep = write_sweep(
-        tmp_path, "crash", seeds=[0, 1, 2, 3], base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 15}
-    )
+def test_killed_trainer_resumes_from_the_last_checkpoint(tmp_path, local_ray):
+    """SIGKILL the stateful trainer mid-training: the round is lost, the trial resumes and ends as if unharmed."""
+    sweep = toy_sweep(tmp_path, "trainer_kill", train_seconds=1.0)
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    killed = {}
+
+    def kill_trainer_after_first_round():
+        def trainer_in_round_two():
+            active = scheduler._active
+            if active and active[0].phase == "running" and active[0].round_index >= 1:
+                return active[0].group.workers["trainer"][0]
+            return None
+
+        trainer = wait_for(trainer_in_round_two, timeout=120, interval=0.05, what="round 2")
+        time.sleep(0.5)  # inside the training call (it sleeps 1 s first)
+        pid = ray.get(trainer.pid.remote())
+        os.kill(pid, signal.SIGKILL)
+        killed["pid"] = pid
+
+    killer = threading.Thread(target=kill_trainer_after_first_round, daemon=True)
+    killer.start()
+    outcome = scheduler.run()
+    killer.join(timeout=5)
+    assert killed and (outcome.finished, outcome.failed) == (1, 0)
+
+    _, (child,) = sweep_runs(tracker.uri, "trainer_kill")
+    assert child.status == FINISHED and child.attempts == 2
+    assert child.metrics["failures/lost_process"] == 1.0
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
+    assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
+    assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
+
+
+@pytest.mark.parametrize("method", ["toy", "mpc"])
+def test_driver_sigkill_then_resume_continues_from_the_last_round(tmp_path, method):
+    if method == "toy":
+        sweep = toy_sweep(tmp_path, "crash", seeds=(0, 1), rounds=6, train_seconds=0.5)
+    else:
+        base = {"planner": {"budget": 50, "horizon": 10}, "max_steps": 24, "round_steps": 4}
+        sweep = write_sweep(tmp_path, "crash", seeds=[0, 1], base=base)
     uri = default_tracking_uri(tmp_path)
     driver = start_cli("run", str(sweep), "--max-concurrent", "1", "--quiet", cwd=tmp_path)
+    tracker = Tracker(uri)
     try:
 
-        def one_finished_one_running():
+        def mid_trial():
             _, children = sweep_runs(uri, "crash")
-            statuses = [c.status for c in children]
-            return statuses.count(FINISHED) >= 1 and RUNNING in statuses
+            running = [c for c in children if c.status == RUNNING]
+            return running and len(tracker.logged_rounds(running[0].run_id)) >= 2
 
-        wait_for(one_finished_one_running, timeout=180, what="one finished and one running trial")
+        wait_for(mid_trial, timeout=180, what="a trial two rounds in")
         os.kill(driver.pid, signal.SIGKILL)  # the driver only; its Ray processes are orphaned
         driver.wait(timeout=30)
     finally:
         kill_group(driver)  # clean up the orphaned local Ray of the killed driver
 
     _, before = sweep_runs(uri, "crash")
-    finished_before = {c.trial_key: c.run_id for c in before if c.status == FINISHED}
-    assert 1 <= len(finished_before) < 4
-    assert any(c.status == RUNNING for c in before)  # left behind by the kill
+    interrupted = {c.trial_key: c.run_id for c in before if c.status == RUNNING}
+    assert len(interrupted) == 1
 
     result = cli("run", str(sweep), "--resume", "--quiet", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     parent, after = sweep_runs(uri, "crash")
-    assert parent.info.status == FINISHED
-    keys = {t.key for t in load_sweep(sweep).trials}
-    latest = current(after)
-    assert sorted(c.trial_key for c in latest) == sorted(keys)  # one current run per trial
-    assert all(c.status == FINISHED for c in latest)
-    assert sum(c.status == FINISHED for c in after) == len(keys)  # no trial finished twice
-    assert not [c for c in after if c.status == RUNNING]
-    # Finished trials were not run again; the interrupted attempt is closed and points onward.
-    assert {c.trial_key: c.run_id for c in latest if c.trial_key in finished_before} == finished_before
-    interrupted = [c for c in after if c.superseded]
-    assert interrupted and all(c.status == KILLED for c in interrupted)
+    assert parent.status == FINISHED
+    assert sorted(c.trial_key for c in after) == sorted(t.key for t in load_sweep(sweep).trials)  # one run each
+    assert all(c.status == FINISHED for c in after)
+    resumed = next(c for c in after if c.trial_key in interrupted)
+    assert resumed.run_id == interrupted[resumed.trial_key] and resumed.attempts == 2  # the same run, continued
+    rounds = METHODS[method].planned_rounds(load_sweep(sweep).trials[0].config.spec())
+    key = "loss" if method == "toy" else "step/reward"
+    for child in after:
+        assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == list(range(rounds))
+        steps = [s for s, _ in history(tracker, child.run_id, key)]
+        assert not [s for s, n in Counter(steps).items() if n > 1]  # no metric step logged twice
+    # The resumed trial ends exactly as an uninterrupted run with the same seed.
+    trial = next(t for t in load_sweep(sweep).trials if t.key == resumed.trial_key)
+    expected = run_locally(METHODS[method], trial.config.spec())
+    if method == "toy":
+        assert [v for _, v in history(tracker, resumed.run_id, "loss")] == [r.metrics["loss"] for r in expected]
+    else:
+        assert resumed.metrics["mean_return"] == expected[-1].summary["mean_return"]
     assert "already done" in result.stderr
+
+
+def test_a_trial_group_is_placed_all_at_once_or_not_at_all(tmp_path, local_ray):
+    """The toy trial needs 2 CPUs (runner + trainer): with one CPU taken, nothing of it starts."""
+    spec = load_sweep(toy_sweep(tmp_path, "placing")).trials[0].config.spec()
+    blocker = ray.remote(num_cpus=1)(toy_method.ToyTrainer).remote(0)
+    ray.get(blocker.pid.remote())
+    group = TrialGroup(spec, 1, {}, max_restarts=0)
+    try:
+        assert group.cpus == 2
+        ready, _ = ray.wait([group.ready()], timeout=3)
+        assert not ready  # one bundle could be reserved, but the group waits whole
+        ray.kill(blocker)
+        ray.get(group.ready(), timeout=30)
+        runner = group.start()
+        report, _ = ray.get(runner.run_round.remote(0), timeout=60)
+        assert report.metrics["weights_version"] == 1
+    finally:
+        group.teardown()
+
+
+def test_a_trial_larger_than_the_cluster_is_refused_before_anything_runs(tmp_path, local_ray):
+    sweep = write_sweep(tmp_path, "too_big", resources={"simulation_workers": 3, "threads_per_worker": 1})
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    with pytest.raises(ResourceError, match="needs 3 CPUs"):
+        SweepScheduler(load_sweep(sweep), tracker).run()
+    assert tracker.find_sweep_run("too_big", "too_big") is None
 
 
 def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
@@ -198,6 +292,6 @@ def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
     assert driver.returncode == 130, output
     assert "--resume" in output  # tells the user how to continue
     parent, children = sweep_runs(uri, "interrupt")
-    assert parent.info.status == KILLED
+    assert parent.status == KILLED
     assert children and not [c for c in children if c.status == RUNNING]
     assert any(c.status == KILLED for c in children)

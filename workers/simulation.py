@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import os
 import uuid
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from workers.methods.base import RoleGroup
 from workers.mpc import PlanningState
 from workers.rollout import BatchEvaluator
 from workers.tasks import SimState, make_task
+
+if TYPE_CHECKING:  # the methods package imports this module
+    from workers.methods.base import RoleGroup
 
 
 class SimulationWorker:

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib
+import os
+
 from workers.methods.base import (
     Artifact,
     LocalRoleGroup,
@@ -21,6 +24,19 @@ METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcPr
 
 DEFAULT_METHOD = "mpc"
 
+PLUGINS_VARIABLE = "ICEMLAB_PLUGINS"
+"""Comma-separated modules imported with the registry: methods kept outside icemlab register themselves."""
+
+
+def register(program: type[Program]) -> type[Program]:
+    """Add a method to the registry (use as a class decorator in a plugin module)."""
+    METHODS[program.name] = program
+    return program
+
+
+for _module in filter(None, (m.strip() for m in os.environ.get(PLUGINS_VARIABLE, "").split(","))):
+    importlib.import_module(_module)
+
 __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
@@ -35,5 +51,6 @@ __all__ = [
     "RoleSpec",
     "RoundReport",
     "TrialSpec",
+    "register",
     "run_locally",
 ]
