@@ -36,7 +36,7 @@ from pydantic import (
     model_validator,
 )
 
-from workers.methods import DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
+from workers.methods import BUILTIN_METHODS, DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
 from workers.planning.config import Algorithm
 from workers.tasks import TASKS, make_task, unknown_task_message
 
@@ -685,16 +685,21 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
     return TrialConfig(method=method, task=task, settings=resolved, seed=config["seed"])
 
 
-def sweep_json_schema() -> dict[str, Any]:
+def sweep_json_schema(builtin_only: bool = False) -> dict[str, Any]:
     """JSON Schema of sweep files, for editor completion and validation.
 
     ``base`` takes the settings of the sweep's method: one conditional branch
-    per method (mpc also when ``method`` is left out).
+    per method (mpc also when ``method`` is left out). ``builtin_only`` leaves
+    plugin methods out (the schema shipped in sweeps/).
     """
+    methods = {name: METHODS[name] for name in (BUILTIN_METHODS if builtin_only else METHODS)}
     schema = Sweep.model_json_schema()
+    method = schema["properties"]["method"]
+    method.pop("const", None)
+    method["enum"] = list(methods)
     definitions = schema.setdefault("$defs", {})
     branches = []
-    for name, program in METHODS.items():
+    for name, program in methods.items():
         settings_schema = program.Settings.model_json_schema(ref_template="#/$defs/{model}")
         definitions.update(settings_schema.pop("$defs", {}))
         definitions[program.Settings.__name__] = settings_schema

@@ -174,6 +174,8 @@ def test_sweep_on_two_node_cluster_with_mlflow_server(tmp_path, cluster, mlflow_
         assert child.data.params["resources.simulation_workers"] == "2"
         assert "episode_return" in child.data.metrics
         assert len(client.get_metric_history(child.info.run_id, "step/reward")) == 8
+        # Checkpoints go through the server's proxied artifact store like every other file.
+        assert [a.path for a in client.list_artifacts(child.info.run_id, "checkpoints")] == ["checkpoints/round_000000"]
     artifacts = {a.path for a in client.list_artifacts(parents[0].info.run_id)}
     assert {"sweep.yaml", "summary.csv", "budget_curve.png"} <= artifacts  # proxied through the server
     print(f"two-node sweep took {time.monotonic() - started:.1f} s")

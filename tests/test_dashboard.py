@@ -64,8 +64,8 @@ def test_dashboard_shows_the_sweep_runs_and_metrics(tmp_path):
         wait_for(
             lambda: urllib.request.urlopen(f"{base}/health", timeout=2).status == 200, timeout=90, what="the MLflow UI"
         )
-        experiment = parent.info.experiment_id
-        parent_url = f"{base}/#/experiments/{experiment}/runs/{parent.info.run_id}"
+        experiment = parent.experiment_id
+        parent_url = f"{base}/#/experiments/{experiment}/runs/{parent.run_id}"
         page = browse(parent_url)
         assert "dashboard" in page and "Finished" in page
         for child in children:  # the child runs are listed by name on the parent's page

@@ -10,33 +10,31 @@ from __future__ import annotations
 
 import pytest
 
-from workers.actors import TrialRunner
+from workers.methods import METHODS, MpcSettings, TrialSpec, run_locally
 from workers.planning import PlannerConfig
 from workers.tasks import make_task
 
 pytestmark = pytest.mark.slow
 
 
-def episode(task_name: str, algorithm: str, budget: int, seed: int = 0):
-    task = make_task(task_name)
-    config = PlannerConfig(algorithm=algorithm, budget=budget).resolved(task.colored_noise_beta)
-    runner = TrialRunner(task_name, config, seed=seed, threads=2)
-    try:
-        return runner.run_episode(0).result
-    finally:
-        runner.evaluator.close()
+def episode(task_name: str, algorithm: str, budget: int, seed: int = 0) -> dict[str, float]:
+    """The metrics of one full-length episode (run in-process on two threads)."""
+    settings = MpcSettings(planner=PlannerConfig(algorithm=algorithm, budget=budget))
+    settings = METHODS["mpc"].resolve(settings, make_task(task_name))
+    reports = run_locally(METHODS["mpc"], TrialSpec("mpc", task_name, settings, seed), unit_cpus=2)
+    return dict(reports[-1].metrics)
 
 
 def test_halfcheetah_icem_budget_100_matches_table_3():
     result = episode("halfcheetah_running", "icem", 100)
-    assert result.episode_return >= 5236 - 2 * 167  # thesis: 5236 +- 167
+    assert result["episode_return"] >= 5236 - 2 * 167  # thesis: 5236 +- 167
 
 
 def test_halfcheetah_cem_mpc_budget_100_is_far_below_icem():
     result = episode("halfcheetah_running", "cem_mpc", 100)
-    assert result.episode_return <= 699 + 4 * 120  # thesis: 699 +- 120, against iCEM's 5236
+    assert result["episode_return"] <= 699 + 4 * 120  # thesis: 699 +- 120, against iCEM's 5236
 
 
 def test_door_sparse_icem_budget_100_opens_the_door():
     result = episode("door_sparse", "icem", 100)
-    assert result.success  # thesis: success rate 0.96
+    assert result["success"]  # thesis: success rate 0.96

@@ -123,7 +123,7 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
         tmp_path,
         "worker_kill",
         task="halfcheetah_running",
-        base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 30},
+        base={"planner": {"budget": 100, "horizon": 30}, "max_steps": 20},
         resources={"simulation_workers": 2, "threads_per_worker": 1},
     )
     loaded = load_sweep(sweep)
@@ -193,10 +193,10 @@ def test_killed_trainer_resumes_from_the_last_checkpoint(tmp_path, local_ray):
     assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
 
 
-@pytest.mark.parametrize("method", ["toy", "mpc"])
+@pytest.mark.parametrize("method", ["toy", pytest.param("mpc", marks=pytest.mark.slow)])
 def test_driver_sigkill_then_resume_continues_from_the_last_round(tmp_path, method):
     if method == "toy":
-        sweep = toy_sweep(tmp_path, "crash", seeds=(0, 1), rounds=6, train_seconds=0.5)
+        sweep = toy_sweep(tmp_path, "crash", seeds=(0, 1), rounds=4, train_seconds=0.3)
     else:
         base = {"planner": {"budget": 50, "horizon": 10}, "max_steps": 24, "round_steps": 4}
         sweep = write_sweep(tmp_path, "crash", seeds=[0, 1], base=base)

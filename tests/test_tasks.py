@@ -45,7 +45,7 @@ def test_restore_reproduces_the_following_steps(name, task_bundle):
     rng = np.random.default_rng(0)
     for _ in range(5):
         task.step_env(env, rng.uniform(-1, 1, task.action_dim))
-    state = task.capture(env, time_step=5)
+    state = task.capture(env)
     actions = rng.uniform(-1, 1, (6, task.action_dim))
     first = [task.step_env(env, a).reward for a in actions]
     env.reset(seed=99)  # somewhere else entirely, other goal and model randomisation

@@ -23,6 +23,8 @@ METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcPr
 """Registry: method name -> program class."""
 
 DEFAULT_METHOD = "mpc"
+BUILTIN_METHODS = tuple(METHODS)
+"""The methods icemlab ships (plugins come on top)."""
 
 PLUGINS_VARIABLE = "ICEMLAB_PLUGINS"
 """Comma-separated modules imported with the registry: methods kept outside icemlab register themselves."""
@@ -38,6 +40,7 @@ for _module in filter(None, (m.strip() for m in os.environ.get(PLUGINS_VARIABLE,
     importlib.import_module(_module)
 
 __all__ = [
+    "BUILTIN_METHODS",
     "DEFAULT_METHOD",
     "METHODS",
     "Artifact",
