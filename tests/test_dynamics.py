@@ -75,7 +75,9 @@ def test_soft_bounds_are_never_exceeded(low, high):
     raw = torch.tensor([-math.inf, -1e30, -1e6, low - 1, low, 0.5 * (low + high), high, high + 1, 1e6, 1e30, math.inf])
     logvar = soft_bound_logvar(raw, torch.tensor(low), torch.tensor(high))
     assert torch.all(logvar >= low) and torch.all(logvar <= high)
-    # Soft, not hard: inside the range the bound moves the value, and it stays monotone.
+    # Soft, not hard: a raw value at a bound is pulled inside by softplus(0) = log 2, and the map stays monotone.
+    at_edges = soft_bound_logvar(torch.tensor([low, high]), torch.tensor(low), torch.tensor(high))
+    assert at_edges[0] > low + 0.5 and at_edges[1] < high - 0.5
     assert torch.all(logvar[1:] >= logvar[:-1])
 
 
@@ -111,6 +113,10 @@ def test_ensemble_fits_a_known_function_and_its_noise():
     model = tiny_model(hidden_size=48, epochs=25, batch_size=128, lr=3e-3)
     before_nll, before_mse, *_ = model.evaluate(held_out)
     stats = model.train(data, held_out)
+    # use_input_normalization (Table 13): inputs are standardised with the training data's moments.
+    inputs = np.concatenate([data.observations, data.actions], axis=1)
+    np.testing.assert_allclose(model.net.input_mean.numpy(), inputs.mean(0), atol=1e-5)
+    np.testing.assert_allclose(model.net.input_std.numpy(), inputs.std(0), rtol=1e-4)
     assert stats.held_out_nll < before_nll - 1.0
     assert stats.held_out_mse < 0.2 * before_mse
     assert stats.held_out_mse < 0.03  # noise variance 0.01 plus a little model error
