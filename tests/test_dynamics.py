@@ -374,3 +374,32 @@ def test_throughput_measurement_runs():
     )
     assert report.dense_flops_per_second > 0 and report.particle_steps_per_second > 0 and report.ratio > 0
     assert report.rows_per_model_step == 5 * (8 + 8)
+
+
+def test_end_to_end_bridge_maze_model_plans_with_icem():
+    """Random BridgeMaze data -> small ensemble -> RAZER evaluator -> one iCEM step (the service's path)."""
+    from workers.planning import CEMPlanner, PlannerConfig
+    from workers.tasks.bridge_maze import BridgeMaze
+
+    task = BridgeMaze()
+    env = task.make_env()
+    obs, _ = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    rows = []
+    for _ in range(300):
+        action = rng.uniform(-1, 1, task.action_dim)
+        next_obs, _, terminated, truncated, _ = env.step(task.env_action(action))
+        rows.append((obs, action, next_obs))
+        obs = next_obs
+        if terminated or truncated:
+            obs, _ = env.reset()
+    env.close()
+    data = Transitions(*(np.array(column) for column in zip(*rows)))
+    model = DynamicsEnsemble(task.observation_dim, task.action_dim, EnsembleConfig.preset("small", epochs=3))
+    stats = model.train(data)
+    assert np.isfinite(stats.train_nll)
+    settings = RazerSettings(aleatoric_weight=0.1, epistemic_weight=0.05)
+    evaluator = EnsembleEvaluator(model, task.planning_cost, settings, particles=5, seed=0)
+    config = PlannerConfig(budget=20, elites=5, horizon=5).resolved(task_beta=task.colored_noise_beta)
+    result = CEMPlanner(config, task.action_dim, seed=0).plan(evaluator.cost_function(data.observations[0]))
+    assert result.action.shape == (2,) and np.all(np.abs(result.action) <= 1) and np.isfinite(result.best_cost)
