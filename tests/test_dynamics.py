@@ -138,6 +138,9 @@ def test_warm_start_continues_and_from_scratch_restarts():
     scratch_stats = scratch.train(data, epochs=1, from_scratch=True)
     assert scratch_stats.from_scratch and warm_stats.weights_version == scratch_stats.weights_version == 2
     assert warm_stats.train_nll < scratch_stats.train_nll - 0.5
+    by_config = DynamicsEnsemble.from_state(*warm.export_state())
+    by_config.config = by_config.config.model_copy(update={"retrain_from_scratch": True})
+    assert by_config.train(data, epochs=1).from_scratch
 
 
 def test_gradient_clipping_is_per_member():

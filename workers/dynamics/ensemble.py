@@ -27,7 +27,8 @@ Reading of the thesis where it is silent (see also :class:`EnsembleConfig`):
   (Table 13) and ``train_epochs_only_with_latest_data`` False, i.e. every call
   trains a fixed number of epochs on all data so far; that budget only makes
   sense for a model that keeps learning between calls, as the lab framework it
-  comes from does. ``from_scratch=True`` re-initialises weights and optimiser.
+  comes from does. ``retrain_from_scratch`` (or ``from_scratch=True`` for one
+  call) re-initialises weights and optimiser first.
 """
 
 from __future__ import annotations
@@ -86,6 +87,8 @@ class EnsembleConfig(BaseModel):
     """Passes over all data per training call (Table 13)."""
     bootstrap: bool = False
     """Each member draws its epoch's samples with replacement (PETS' bootstrap) instead of a fresh permutation."""
+    retrain_from_scratch: bool = False
+    """Re-initialise weights and Adam state at every training call; default warm start (see the module docstring)."""
 
     @model_validator(mode="after")
     def _bounds_are_ordered(self) -> EnsembleConfig:
@@ -332,7 +335,7 @@ class DynamicsEnsemble:
         data: Transitions,
         held_out: Transitions | None = None,
         *,
-        from_scratch: bool = False,
+        from_scratch: bool | None = None,
         epochs: int | None = None,
         seed: int = 0,
     ) -> TrainStats:
@@ -341,7 +344,7 @@ class DynamicsEnsemble:
         Args:
             data: training transitions.
             held_out: transitions to report held-out losses on (never trained on).
-            from_scratch: re-initialise weights and optimiser first (default: warm start).
+            from_scratch: re-initialise weights and optimiser first; None: the config's retrain_from_scratch.
             epochs: override the configured number of epochs for this call.
             seed: seeds minibatch order; the same weights, data and seed give the same result.
         """
@@ -349,6 +352,8 @@ class DynamicsEnsemble:
         config = self.config
         if len(data) == 0:
             raise ValueError("cannot train on an empty dataset")
+        if from_scratch is None:
+            from_scratch = config.retrain_from_scratch
         if from_scratch:
             self._initialise(self.seed + 1_000_003 * (self.weights_version + 1))
         self.fit_normalizer(data)
