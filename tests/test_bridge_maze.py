@@ -1,0 +1,174 @@
+"""BridgeMaze (thesis App. D.4): falls, the goal, the wind, the reward and the coverage grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from workers.tasks.bridge_maze import (
+    COVERAGE_BINS,
+    BridgeMaze,
+    bridge_maze_reward,
+    coverage_grid,
+    in_wind_region,
+    on_walkway,
+    state_coverage,
+)
+
+torch.set_num_threads(1)
+
+
+def waypoint_controller(waypoints, speed: float = 6.0):
+    """Track a velocity of ``speed`` m/s towards the next waypoint."""
+    waypoints = np.asarray(waypoints, dtype=float)
+    state = {"i": 0}
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        pos, vel = obs[:2], obs[7:9]
+        while state["i"] < len(waypoints) - 1 and np.linalg.norm(waypoints[state["i"]] - pos) < 0.5:
+            state["i"] += 1
+        offset = waypoints[state["i"]] - pos
+        return np.clip(0.5 * (speed * offset / max(np.linalg.norm(offset), 1.0) - vel), -1, 1)
+
+    return act
+
+
+def run(task: BridgeMaze, policy, seed: int = 0):
+    env = task.make_env()
+    obs, _ = env.reset(seed=seed)
+    observations, rewards, infos = [obs], [], []
+    terminated = truncated = False
+    while not (terminated or truncated):
+        obs, reward, terminated, truncated, info = env.step(task.env_action(policy(obs)))
+        observations.append(obs)
+        rewards.append(reward)
+        infos.append(info)
+    env.close()
+    return np.array(observations), np.array(rewards), infos, terminated
+
+
+LOWER = [(-12, -5.5), (-9, -5.5), (9, -5.5), (13, -5.5)]
+UPPER = [(-12, 9), (-9, 9), (9, 9), (13, 9)]
+MIDDLE = [(-9, 0), (9, 0), (13, 0)]
+INTO_LAVA = [(-12, 3), (-4, 3)]  # off the start platform into the gap between the middle and upper bridges
+
+
+@pytest.mark.parametrize("route", [LOWER, UPPER], ids=["lower", "upper"])
+def test_goal_is_reachable_by_a_scripted_controller(route):
+    task = BridgeMaze()
+    observations, rewards, infos, terminated = run(task, waypoint_controller(route))
+    metrics = task.episode_metrics(observations, rewards, infos)
+    assert metrics["success"] == 1.0 and metrics["failure"] == 0.0 and not terminated
+    assert observations.shape == (task.episode_length + 1, 10)
+    # Eq. 36 telescopes to the distance covered towards the goal line, 12 - (-12), less the last
+    # stretch: the step that crosses the line earns 0 (the goal case).
+    assert 23.0 < metrics["return"] <= 24.0
+    assert metrics["windy_steps"] == 0  # neither side bridge is in the wind
+    # The cube slides upright: the free joint's quaternion stays close to the identity.
+    assert np.abs(observations[:, 3]).min() > 0.98
+
+
+def test_a_fall_into_the_lava_ends_the_episode():
+    task = BridgeMaze()
+    observations, rewards, infos, terminated = run(task, waypoint_controller(INTO_LAVA))
+    assert terminated and len(rewards) < 60
+    assert observations[-1, 2] < -1.5 and infos[-1]["fell"]
+    assert rewards[-1] == -1.0
+    metrics = task.episode_metrics(observations, rewards, infos)
+    assert metrics["failure"] == 1.0 and metrics["success"] == 0.0
+
+
+def test_without_termination_the_fall_costs_minus_one_per_step():
+    task = BridgeMaze(episode_length=60, terminate_on_fall=False)
+    observations, rewards, _, terminated = run(task, waypoint_controller(INTO_LAVA))
+    assert not terminated and len(rewards) == 60
+    fallen = observations[1:, 2] < -1.5
+    assert fallen[-1] and np.all(rewards[fallen] == -1.0)
+
+
+def test_wind_only_acts_on_the_middle_bridge():
+    task = BridgeMaze(wind_max=30.0)
+    for route in (MIDDLE, LOWER, UPPER):
+        observations, _, infos, _ = run(task, waypoint_controller(route), seed=1)
+        before = observations[:-1]
+        windy = np.array([info["wind_applied"] > 0 for info in infos])
+        inside = in_wind_region(before[:, 0], before[:, 1]) | in_wind_region(observations[1:, 0], observations[1:, 1])
+        assert not np.any(windy & ~inside)
+        if route is MIDDLE:
+            assert windy.sum() > 5
+        else:
+            assert windy.sum() == 0
+
+
+def test_wind_pushes_sideways_and_is_redrawn_every_period():
+    """On the middle bridge, holding still, the cube drifts along y; the draw changes every 5 steps."""
+    task = BridgeMaze(wind_max=30.0, episode_length=40, terminate_on_fall=False)
+    env = task.make_env()
+    env.reset(seed=3)
+    raw = env.unwrapped
+    raw.set_state(np.array([0.0, 0.0, 0.25, 1, 0, 0, 0]), np.zeros(6))
+    winds, ys = [], []
+    for _ in range(20):
+        obs, *_ , info = env.step(np.zeros(2))
+        winds.append(info["wind"])
+        ys.append(obs[1])
+    winds = np.array(winds)
+    assert all(len(set(winds[i : i + 5])) == 1 for i in range(0, 20, 5))
+    assert len(set(winds)) == 4
+    assert np.abs(np.array(ys)).max() > 0.05  # the force moves the cube
+    calm = BridgeMaze(wind_max=0.0).make_env()
+    calm.reset(seed=3)
+    calm.unwrapped.set_state(np.array([0.0, 0.0, 0.25, 1, 0, 0, 0]), np.zeros(6))
+    for _ in range(20):
+        obs, *_ = calm.step(np.zeros(2))
+    assert abs(obs[1]) < 1e-6
+    env.close()
+    calm.close()
+
+
+def test_the_middle_bridge_is_risky_but_crossable():
+    """The wind is tuned so a straight run sometimes succeeds and sometimes falls (section 5.4.2)."""
+    task = BridgeMaze(wind_max=30.0)
+    successes = [
+        task.episode_metrics(*run(task, waypoint_controller(MIDDLE), seed=s)[:3])["success"] for s in range(8)
+    ]
+    assert 0 < sum(successes) < 8
+
+
+def test_planning_cost_is_minus_eq_36():
+    task = BridgeMaze()
+    rng = np.random.default_rng(0)
+    obs, next_obs = rng.uniform(-16, 16, (500, 10)), rng.uniform(-16, 16, (500, 10))
+    next_obs[:, 2] = rng.uniform(-3, 1, 500)
+    expected = -bridge_maze_reward(obs[:, 0], next_obs[:, 0], next_obs[:, 2])
+    cost = task.planning_cost(torch.as_tensor(obs), torch.zeros(500, 2), torch.as_tensor(next_obs))
+    np.testing.assert_allclose(cost.numpy(), expected)
+    # The three cases of eq. 36, the fall taking precedence over the goal.
+    assert bridge_maze_reward(np.array(0.0), np.array(1.0), np.array(0.25)) == 1.0
+    assert bridge_maze_reward(np.array(11.5), np.array(12.5), np.array(0.25)) == 0.0
+    assert bridge_maze_reward(np.array(11.5), np.array(12.5), np.array(-2.0)) == -1.0
+
+
+def test_walkway_geometry():
+    assert on_walkway(-12, 0) and on_walkway(0, 0) and on_walkway(0, -5.5) and on_walkway(0, 9) and on_walkway(12, 0)
+    assert not on_walkway(0, 3) and not on_walkway(0, -3) and not on_walkway(0, 6) and not on_walkway(18, 0)
+    assert in_wind_region(0, 3) and not in_wind_region(0, -5.5) and not in_wind_region(9, 0)
+
+
+def test_coverage_grid():
+    grid = coverage_grid(np.array([[-20.0, -10.0], [20.0, 15.0], [0.0, 0.0], [0.1, 0.1], [30.0, 0.0]]))
+    assert grid.shape == (COVERAGE_BINS, COVERAGE_BINS)
+    assert grid[0, 0] and grid[-1, -1] and grid.sum() == 3  # (0, 0) and (0.1, 0.1) share a cell; x = 30 is outside
+    assert state_coverage(grid) == pytest.approx(3 / 2500)
+
+
+def test_success_needs_the_goal_without_a_fall():
+    task = BridgeMaze()
+    observations = np.zeros((4, 10))
+    observations[:, 0] = [-12.0, 0.0, 12.5, 7.0]
+    observations[:, 2] = [0.25, 0.25, 0.25, 0.25]
+    assert task.episode_metrics(observations, np.zeros(3), [{}] * 3)["success"] == 1.0
+    observations[3, 2] = -1.6  # went back and fell into the lava after reaching the goal
+    metrics = task.episode_metrics(observations, np.zeros(3), [{}] * 3)
+    assert metrics["success"] == 0.0 and metrics["failure"] == 1.0

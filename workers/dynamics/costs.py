@@ -1,0 +1,213 @@
+"""RAZER's sequence cost: task cost, aleatoric penalty, epistemic bonus, safety penalty.
+
+Eq. 25-27 (section 5.3.5) and eq. 34-35 (App. D.1.3); Alg. 5 line 8:
+c_tot = c + c_A + c_E + c_S for every action sequence, with
+
+* c   = sum_t mean_p c(s~^p_{t-1}, a_{t-1}, s~^p_t)            (eq. 25, cost_along_trajectory "sum", Table 15)
+* c_A = w_A sum_t U(Var_A(t))                                   (eq. 26)
+* c_E = -w_E sum_t U(Var_E(t))                                  (eq. 27)
+* c_S = w_S sum_t [p(s_t in C) > delta]                         (eq. 35)
+
+U turns a per-dimension variance into one number. Eq. 26-27 write
+sqrt(Var) of a vector without saying how dimensions combine; the default
+``sum_sqrt`` sums the per-dimension standard deviations, which keeps every
+term in units of the observation (App. D.2.5 prefers variance over entropy
+because it is "of the same scale as the observation space").
+
+PETS is w_A = w_E = 0 without mean propagation (section 5.4.1: the only
+difference of RAZER is the propagated mean and the penalties).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Literal, NamedTuple
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from workers.dynamics.propagation import MeanPropagation, Propagation
+
+TaskCost = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+"""Per-transition planning cost c(s_t, a_t, s_{t+1}): (B, d), (B, d_a), (B, d) tensors -> (B,)."""
+
+UncertaintyReduction = Literal["sum_sqrt", "sqrt_sum", "mean_sqrt"]
+
+
+class SafetyBox(BaseModel):
+    """An axis-aligned box violation set C = {s : low_i <= s[dims_i] <= high_i for every i} (App. D.1.3).
+
+    Unconstrained sides are None (e.g. a ceiling: low = height, high = None).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    dims: tuple[int, ...] = Field(min_length=1)
+    """Observation dimensions the box constrains."""
+    low: tuple[float | None, ...]
+    """Lower edge per constrained dimension; None: unbounded below."""
+    high: tuple[float | None, ...]
+    """Upper edge per constrained dimension; None: unbounded above."""
+
+    @model_validator(mode="after")
+    def _edges_match_dims(self) -> SafetyBox:
+        if not len(self.low) == len(self.high) == len(self.dims):
+            raise ValueError(
+                f"a safety box needs one low and one high edge per dimension: "
+                f"{len(self.dims)} dims, {len(self.low)} low, {len(self.high)} high"
+            )
+        for dim, lo, hi in zip(self.dims, self.low, self.high):
+            if dim < 0:
+                raise ValueError(f"safety box dimension {dim} is negative")
+            if lo is not None and hi is not None and not lo < hi:
+                raise ValueError(f"safety box edge low {lo} is not below high {hi} in dimension {dim}")
+        return self
+
+    def edges(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(low, high) float tensors with -inf / inf for unbounded sides."""
+        low = torch.tensor([-math.inf if v is None else v for v in self.low])
+        high = torch.tensor([math.inf if v is None else v for v in self.high])
+        return low, high
+
+
+class RazerSettings(BaseModel):
+    """Uncertainty-aware cost settings of RAZER (section 5.3.5, App. D.1.3); all weights zero is PETS."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    aleatoric_weight: float = Field(0.0, ge=0)
+    """w_A of the aleatoric penalty (eq. 26); not published."""
+    epistemic_weight: float = Field(0.0, ge=0)
+    """w_E of the epistemic bonus (eq. 27); 0.05 for the BridgeMaze exploration run (section 5.4.2)."""
+    mean_propagation: MeanPropagation = "per_member"
+    """Mean propagation of PETSUS: per_member, shared or none (PETS); see workers/dynamics/propagation.py."""
+    uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
+    """How sqrt(Var) combines dimensions: sum of per-dim std (default), sqrt of the summed variance, mean std."""
+    uncertainty_dims: tuple[int, ...] | None = None
+    """Observation dimensions whose uncertainty counts; None: all."""
+    safety_weight: float = Field(0.0, ge=0)
+    """w_S, the penalty per step whose violation probability exceeds delta (eq. 35); 0 disables safety."""
+    safety_delta: float = Field(0.05, gt=0, lt=1)
+    """delta, the tolerated violation probability per step (eq. 35); not published (Fig. 36b varies it)."""
+    safety_boxes: tuple[SafetyBox, ...] = ()
+    """Violation sets C; a step counts once if any box's probability exceeds delta."""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RazerSettings:
+        if self.epistemic_weight > 0 and self.mean_propagation == "none":
+            raise ValueError("epistemic_weight > 0 needs mean propagation (per_member or shared): eq. 24 uses it")
+        if self.safety_weight > 0 and not self.safety_boxes:
+            raise ValueError("safety_weight > 0 needs at least one safety box")
+        return self
+
+    @classmethod
+    def pets(cls) -> RazerSettings:
+        """Plain PETS: expected particle cost only, no mean propagation."""
+        return cls(mean_propagation="none")
+
+
+class CostTerms(NamedTuple):
+    """Cost terms of N sequences, each (N,); ``total`` = task + aleatoric + epistemic + safety (Alg. 5 line 8)."""
+
+    total: torch.Tensor
+    task: torch.Tensor
+    """c: mean particle cost summed over the horizon (eq. 25)."""
+    aleatoric: torch.Tensor
+    """c_A = w_A sum_t U(Var_A) (eq. 26), >= 0."""
+    epistemic: torch.Tensor
+    """c_E = -w_E sum_t U(Var_E) (eq. 27), <= 0."""
+    safety: torch.Tensor
+    """c_S = w_S sum_t [p_violation > delta] (eq. 35)."""
+    aleatoric_uncertainty: torch.Tensor
+    """sum_t U(Var_A), unweighted (for logging)."""
+    epistemic_uncertainty: torch.Tensor | None
+    """sum_t U(Var_E), unweighted; None without mean propagation."""
+    violation_steps: torch.Tensor
+    """Number of steps whose violation probability exceeds delta (0 when no boxes are set)."""
+
+
+def reduce_uncertainty(
+    variance: torch.Tensor, reduction: UncertaintyReduction, dims: tuple[int, ...] | None = None
+) -> torch.Tensor:
+    """(..., d) per-dimension variances -> (...) one uncertainty per step (see the module docstring)."""
+    if dims is not None:
+        variance = variance[..., list(dims)]
+    if reduction == "sum_sqrt":
+        return variance.sqrt().sum(dim=-1)
+    if reduction == "sqrt_sum":
+        return variance.sum(dim=-1).sqrt()
+    if reduction == "mean_sqrt":
+        return variance.sqrt().mean(dim=-1)
+    raise ValueError(f"unknown uncertainty reduction {reduction!r}")
+
+
+def box_violation_probability(mean: torch.Tensor, std: torch.Tensor, box: SafetyBox) -> torch.Tensor:
+    """P(s in box) under N(mean, diag(std^2)) (eq. 34): product over constrained dims of Phi(hi) - Phi(lo).
+
+    ``mean`` and ``std`` are (..., d). A box is exactly the product of its
+    per-dimension intervals, so with a diagonal Gaussian eq. 34's product is
+    exact. A zero std gives the indicator of the mean lying in the box.
+    """
+    low, high = box.edges()
+    dims = list(box.dims)
+    mu, sigma = mean[..., dims], std[..., dims].clamp_min(1e-12)
+    inside = torch.special.ndtr((high - mu) / sigma) - torch.special.ndtr((low - mu) / sigma)
+    return inside.clamp_min(0.0).prod(dim=-1)
+
+
+def moment_matched_violation(particles: torch.Tensor, boxes: tuple[SafetyBox, ...]) -> torch.Tensor:
+    """(N, P, h, d) particles -> (N, h) max over boxes of the violation probability of the moment-matched Gaussian.
+
+    App. D.1.3: mean and (diagonal) variance are the Monte Carlo moments of the
+    sampled particles per time slice; the mean states are not used ("for the
+    safety term ideally we want to use the full distribution", D.2.4).
+    """
+    mean = particles.mean(dim=1)
+    std = particles.var(dim=1, unbiased=False).sqrt()
+    probabilities = [box_violation_probability(mean, std, box) for box in boxes]
+    return torch.stack(probabilities).amax(dim=0)
+
+
+def sequence_costs(
+    propagation: Propagation, actions: torch.Tensor, task_cost: TaskCost, settings: RazerSettings
+) -> CostTerms:
+    """RAZER's cost terms of N action sequences from their PETSUS propagation."""
+    particles = propagation.particles
+    n, p, h, d = particles.shape
+    previous = torch.cat([propagation.start.expand(n, p, 1, d), particles[:, :, :-1]], dim=2)
+    per_particle_actions = actions.to(particles.dtype).unsqueeze(1).expand(n, p, h, -1)
+    cost = task_cost(
+        previous.reshape(-1, d), per_particle_actions.reshape(n * p * h, -1), particles.reshape(-1, d)
+    ).reshape(n, p, h)
+    task = cost.mean(dim=1).sum(dim=1)
+
+    u_a = reduce_uncertainty(propagation.var_aleatoric, settings.uncertainty_reduction, settings.uncertainty_dims)
+    aleatoric_uncertainty = u_a.sum(dim=1)
+    aleatoric = settings.aleatoric_weight * aleatoric_uncertainty
+
+    epistemic_uncertainty = None
+    epistemic = torch.zeros_like(task)
+    if propagation.var_epistemic is not None:
+        u_e = reduce_uncertainty(propagation.var_epistemic, settings.uncertainty_reduction, settings.uncertainty_dims)
+        epistemic_uncertainty = u_e.sum(dim=1)
+        epistemic = -settings.epistemic_weight * epistemic_uncertainty
+    elif settings.epistemic_weight > 0:
+        raise ValueError("epistemic_weight > 0 but the propagation has no mean states")
+
+    violation_steps = torch.zeros_like(task)
+    if settings.safety_boxes:
+        probability = moment_matched_violation(particles, settings.safety_boxes)
+        violation_steps = (probability > settings.safety_delta).to(task.dtype).sum(dim=1)
+    safety = settings.safety_weight * violation_steps
+
+    return CostTerms(
+        total=task + aleatoric + epistemic + safety,
+        task=task,
+        aleatoric=aleatoric,
+        epistemic=epistemic,
+        safety=safety,
+        aleatoric_uncertainty=aleatoric_uncertainty,
+        epistemic_uncertainty=epistemic_uncertainty,
+        violation_steps=violation_steps,
+    )

@@ -1,0 +1,107 @@
+"""The planner-facing cost evaluator: numpy action sequences in, RAZER costs out (Alg. 5 lines 6-8).
+
+The iCEM planner (workers/planning/icem.py) minimises a function of (N, h, d)
+action sequences in [-1, 1]. :class:`EnsembleEvaluator` computes that cost
+for a start observation with one PETSUS propagation and one batched task-cost
+call per invocation: torch never runs per trajectory.
+
+The ensemble must have been trained on actions in the planner's normalised
+[-1, 1] space (the tasks' ``env_action`` maps them to the environment).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from workers.dynamics.costs import CostTerms, RazerSettings, TaskCost, sequence_costs
+from workers.dynamics.ensemble import DynamicsEnsemble
+from workers.dynamics.propagation import Propagation, petsus_propagate
+
+DEFAULT_PARTICLES = 5
+"""Particles per sequence. The thesis does not give P; PETS used 20. One per member of a 5-ensemble keeps
+the 6 x 400 BridgeMaze model affordable on a two-core machine (MEASURED.md section 8); raise it when it fits."""
+
+
+class EnsembleEvaluator:
+    """RAZER / PETS costs of action sequences under a learned ensemble.
+
+    Args:
+        model: the trained ensemble.
+        task_cost: per-transition planning cost c(s, a, s') on torch batches (a task's ``planning_cost``).
+        settings: weights and switches (default: PETS).
+        particles: P, TS1 particles per sequence.
+        seed: seeds the torch generator of particle noise and TS1 assignment; the same seed and the
+            same calls give the same costs.
+    """
+
+    def __init__(
+        self,
+        model: DynamicsEnsemble,
+        task_cost: TaskCost,
+        settings: RazerSettings | None = None,
+        particles: int = DEFAULT_PARTICLES,
+        seed: int = 0,
+    ):
+        self.model = model
+        self.task_cost = task_cost
+        self.settings = settings or RazerSettings.pets()
+        if particles < 1:
+            raise ValueError(f"particles must be at least 1, got {particles}")
+        self.particles = particles
+        used_dims = list(self.settings.uncertainty_dims or ()) + [
+            d for box in self.settings.safety_boxes for d in box.dims
+        ]
+        if used_dims and max(used_dims) >= model.obs_dim:
+            raise ValueError(f"settings refer to observation dimension {max(used_dims)}; the model has {model.obs_dim}")
+        self.reseed(seed)
+
+    def reseed(self, seed: int) -> None:
+        """Restart the random stream (e.g. per episode, for reproducible episodes)."""
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def propagate(self, observation: np.ndarray, actions: np.ndarray) -> Propagation:
+        """The PETSUS propagation of the sequences (for inspection and tests)."""
+        with torch.no_grad():
+            return petsus_propagate(
+                self.model,
+                torch.as_tensor(observation, dtype=torch.float32),
+                torch.as_tensor(actions, dtype=torch.float32),
+                self.particles,
+                self.settings.mean_propagation,
+                self.generator,
+            )
+
+    def terms(self, observation: np.ndarray, actions: np.ndarray) -> CostTerms:
+        """All cost terms as torch tensors."""
+        propagation = self.propagate(observation, actions)
+        with torch.no_grad():
+            return sequence_costs(propagation, torch.as_tensor(actions), self.task_cost, self.settings)
+
+    def costs(self, observation: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """(total (N,), components) for (N, h, d) action sequences from ``observation``.
+
+        Components, each (N,): ``c`` task cost (eq. 25), ``c_A`` aleatoric penalty (eq. 26),
+        ``c_E`` epistemic bonus (eq. 27, <= 0), ``c_S`` safety penalty (eq. 35), ``u_A`` and
+        ``u_E`` the unweighted uncertainty sums (``u_E`` only with mean propagation), and
+        ``violation_steps``. ``total`` = c + c_A + c_E + c_S.
+        """
+        terms = self.terms(observation, actions)
+        components = {
+            "c": terms.task,
+            "c_A": terms.aleatoric,
+            "c_E": terms.epistemic,
+            "c_S": terms.safety,
+            "u_A": terms.aleatoric_uncertainty,
+            "violation_steps": terms.violation_steps,
+        }
+        if terms.epistemic_uncertainty is not None:
+            components["u_E"] = terms.epistemic_uncertainty
+        as_numpy = {name: value.double().numpy() for name, value in components.items()}
+        return terms.total.double().numpy(), as_numpy
+
+    def cost_function(self, observation: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        """The planner's CostFunction for one state: action sequences (N, h, d) -> total costs (N,)."""
+        return lambda actions: self.costs(observation, actions)[0]

@@ -1,0 +1,143 @@
+"""PETSUS: trajectory sampling with uncertainty separation (thesis section 5.3.4, eq. 20-24, Fig. 18, App. D.2.4).
+
+For N action sequences and P particles per sequence, every model step is one
+batched ensemble evaluation over all N * P particles plus the mean states:
+
+* **Particles (TS1, Chua et al.)**: each particle is sampled from the Gaussian
+  of the member it is assigned to, and particles are re-assigned to random
+  members at *every* step. The assignment is balanced: at each step, each
+  sequence's particles are randomly ranked and dealt to the members like
+  cards, the members in a random order. With P a multiple of K every member
+  predicts exactly P/K particles of every sequence at every step; otherwise
+  loads differ by at most one and the surplus goes to random members. Balance keeps the batch
+  rectangular, (K, N ceil(P/K), d), so a step is a single baddbmm per layer.
+* **Mean propagation** (no sampling, the yellow lines of Fig. 18), the input of
+  the epistemic estimate (eq. 24). ``per_member`` (default): every member
+  propagates its own mean state, s_bar^k_{t+1} = s_bar^k_t + mu_k(s_bar^k_t, a_t),
+  the reading of App. D.2.4 ("propagates the mean prediction for each ensemble
+  member"). ``shared``: one mean state, s_bar_{t+1} = s_bar_t + mean_k mu_k(s_bar_t, a_t),
+  on which every member is evaluated, the reading of eq. 24's unindexed s_bar_t.
+  ``none``: plain PETS. Both variants cost the same K mean-state rows per sequence.
+
+Uncertainties, per state dimension:
+
+* Var_A(t+1) = mean over the sequence's particles of the variance the member
+  assigned to the particle predicts for it (eq. 22: the mean over members of
+  Sigma_k(s~_t, a_t); with balanced TS1 both means coincide for P = multiple of K).
+* Var_E(t+1) = Var_k[mu_k(s_bar_t, a_t)] + Var_k[Sigma_k(s_bar_t, a_t)] (eq. 24),
+  the empirical (population, divide-by-K) variance over members, taken at each
+  member's own mean state in the per_member mode. The second term literally
+  adds a variance of variances to a variance of means, as eq. 24 writes it.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import torch
+
+from workers.dynamics.ensemble import DynamicsEnsemble
+
+MeanPropagation = Literal["none", "per_member", "shared"]
+
+
+class Propagation(NamedTuple):
+    """The predicted trajectory distribution of N action sequences (torch tensors)."""
+
+    start: torch.Tensor
+    """(d,) the state every sequence starts from."""
+    particles: torch.Tensor
+    """(N, P, h, d) sampled particle states s~_1 ... s~_h."""
+    members: torch.Tensor
+    """(N, P, h) the member that predicted each particle state (TS1 assignment)."""
+    var_aleatoric: torch.Tensor
+    """(N, h, d) Var_A of eq. 22 for steps 1 ... h."""
+    means: torch.Tensor | None
+    """(M, N, h, d) propagated mean states (M = K per member, 1 shared); None without mean propagation."""
+    var_epistemic: torch.Tensor | None
+    """(N, h, d) Var_E of eq. 24 for steps 1 ... h; None without mean propagation."""
+
+
+def petsus_propagate(
+    model: DynamicsEnsemble,
+    start: torch.Tensor,
+    actions: torch.Tensor,
+    particles: int,
+    mean_propagation: MeanPropagation = "per_member",
+    generator: torch.Generator | None = None,
+) -> Propagation:
+    """Propagate P TS1 particles (and the mean states) of N action sequences through the ensemble.
+
+    Args:
+        model: the ensemble.
+        start: (d,) start state.
+        actions: (N, h, d_a) action sequences, as the model was trained on them.
+        particles: P, particles per sequence.
+        mean_propagation: ``per_member``, ``shared`` or ``none`` (see the module docstring).
+        generator: torch generator for the particle noise and the TS1 assignment.
+    """
+    if particles < 1:
+        raise ValueError(f"particles must be at least 1, got {particles}")
+    n, horizon, _ = actions.shape
+    k, d = model.ensemble_size, model.obs_dim
+    per = -(-particles // k)  # particles per member and sequence, rounded up
+    slots_total = per * k
+    start = start.to(torch.float32).reshape(d)
+    actions = actions.to(torch.float32)
+    state = start.expand(n, particles, d).clone()
+    rows = n * per  # particle rows per member
+    if mean_propagation == "per_member":
+        mean_state = start.expand(k, n, d).clone()
+    elif mean_propagation == "shared":
+        mean_state = start.expand(1, n, d).clone()
+    elif mean_propagation == "none":
+        mean_state = None
+    else:
+        raise ValueError(f"unknown mean_propagation {mean_propagation!r}")
+
+    states, members, var_a, means, var_e = [], [], [], [], []
+    for t in range(horizon):
+        action = actions[:, t]  # (N, d_a)
+        # TS1: particle of random rank r takes row r // K of member sigma(r % K), sigma a random
+        # permutation of the members: loads are balanced and the surplus of P % K lands on random members.
+        rank = torch.rand(n, particles, generator=generator).argsort(dim=1)
+        sigma = torch.rand(n, k, generator=generator).argsort(dim=1)
+        slots = (rank // k) * k + sigma.gather(1, rank % k)  # slot s -> member s % K, row s // K
+        index = slots.unsqueeze(-1).expand(-1, -1, d)
+        grid = state.new_zeros(n, slots_total, d).scatter_(1, index, state)  # unused slots stay 0 (discarded)
+        particle_in = grid.view(n, per, k, d).permute(2, 0, 1, 3).reshape(k, rows, d)
+        particle_act = action.unsqueeze(1).expand(n, per, -1).reshape(1, rows, -1).expand(k, -1, -1)
+        inputs = torch.cat([particle_in, particle_act], dim=-1)
+        if mean_state is not None:
+            mean_in = torch.cat([mean_state.expand(k, n, d), action.expand(k, n, -1)], dim=-1)
+            inputs = torch.cat([inputs, mean_in], dim=1)
+        mu, logvar = model.predict(inputs)  # one batched evaluation for particles and means
+
+        var = logvar[:, :rows].exp()
+        noise = torch.randn(particle_in.shape, generator=generator)
+        sampled = particle_in + mu[:, :rows] + var.sqrt() * noise
+
+        def to_particles(x: torch.Tensor) -> torch.Tensor:
+            """(K, N per, d) rows back to each sequence's particles (N, P, d)."""
+            return x.view(k, n, per, d).permute(1, 2, 0, 3).reshape(n, slots_total, d).gather(1, index)
+
+        state = to_particles(sampled)
+        states.append(state)
+        members.append(slots % k)
+        var_a.append(to_particles(var).mean(dim=1))
+
+        if mean_state is not None:
+            mean_mu, mean_var = mu[:, rows:], logvar[:, rows:].exp()  # (K, N, d)
+            var_e.append(mean_mu.var(dim=0, unbiased=False) + mean_var.var(dim=0, unbiased=False))
+            step = mean_mu if mean_propagation == "per_member" else mean_mu.mean(dim=0, keepdim=True)
+            mean_state = mean_state + step
+            means.append(mean_state)
+
+    return Propagation(
+        start=start,
+        particles=torch.stack(states, dim=2),
+        members=torch.stack(members, dim=2),
+        var_aleatoric=torch.stack(var_a, dim=1),
+        means=torch.stack(means, dim=2) if means else None,
+        var_epistemic=torch.stack(var_e, dim=1) if var_e else None,
+    )

@@ -1,0 +1,72 @@
+"""Tasks planned with a learned ensemble (thesis chapter 5, App. D.4).
+
+Unlike the ground-truth tasks of workers/tasks/base.py, the planner never
+restarts a simulator here: it sees only observations, and a task contributes a
+real environment, a vectorised planning cost on (s, a, s') torch batches for
+RAZER's evaluator (workers/dynamics/costs.py), its safety sets, and per-episode
+metrics. Actions are normalised to [-1, 1] in every dimension, as in iCEM;
+``env_action`` maps them to the environment, and the ensemble is trained on the
+normalised actions.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from workers.dynamics.costs import SafetyBox
+
+
+class ModelBasedTask(ABC):
+    """A chapter-5 task: real environment, planning cost c(s, a, s') and episode metrics."""
+
+    name: ClassVar[str]
+    """Name the service may register the task under."""
+    observation_dim: ClassVar[int]
+    """Dimensions of the (flat) observation the model predicts."""
+    action_dim: ClassVar[int]
+    """Dimensions of the normalised action."""
+    ensemble_preset: ClassVar[str]
+    """Name of the EnsembleConfig preset of the thesis for this task (Tables 13/14)."""
+    colored_noise_beta: ClassVar[float]
+    """iCEM's colored-noise exponent for this task (Tables 15/16)."""
+    description: ClassVar[str] = ""
+    """One line for listings."""
+
+    episode_length: int
+    """Environment steps per episode."""
+
+    @abstractmethod
+    def make_env(self) -> gym.Env:
+        """The real environment with the task's time limit; ``step`` takes normalised actions via env_action."""
+
+    def env_action(self, action: np.ndarray) -> np.ndarray:
+        """Map a normalised action in [-1, 1] to the environment's action space."""
+        return np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+
+    @abstractmethod
+    def planning_cost(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """c(s, a, s') for (B, d), (B, d_a), (B, d) batches -> (B,) (the negative task reward)."""
+
+    @property
+    def safety_boxes(self) -> tuple[SafetyBox, ...]:
+        """Violation sets for RAZER's safety term (App. D.1.3); none by default."""
+        return ()
+
+    @abstractmethod
+    def episode_metrics(
+        self, observations: np.ndarray, rewards: np.ndarray, infos: list[dict[str, Any]]
+    ) -> dict[str, float]:
+        """Metrics of one finished episode.
+
+        Args:
+            observations: (T + 1, d) observations from the reset on.
+            rewards: (T,) rewards the environment returned.
+            infos: the T info dicts of the steps.
+
+        Returns at least ``return``; ``success`` and ``failure`` (0.0 / 1.0) where the task defines them.
+        """
