@@ -234,11 +234,10 @@ def cmd_status(args) -> int:
         return 1
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}")
     for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
-        rounds = child.tags.get("icemlab.rounds", "0")
         figure = child.metrics.get("mean_return")
         shown = "" if figure is None else f"return {figure:.1f}"
         print(
-            f"  {child.trial_key}  {child.status:9s} {child.name:44s} rounds {rounds:>4s}  "
+            f"  {child.trial_key}  {child.status:9s} {child.name:44s} rounds {child.rounds:>4d}  "
             f"attempts {child.attempts}  {shown}"
         )
         if child.error:

@@ -22,7 +22,7 @@ import types
 import typing
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 import yaml
@@ -164,7 +164,7 @@ class Sweep(_UserModel):
     [{name: full}, {name: no-colored-noise, planner.noise_beta: 0}]. Combined with every grid point and seed."""
     num_samples: int = Field(1, ge=1)
     """Draws of the random parameters (each combined with every grid point and seed)."""
-    seeds: list[int] | SeedRange = Field([0], min_length=1)
+    seeds: Annotated[list[int], Field(min_length=1)] | SeedRange = [0]
     """Seeds, as a list or as {first, count}; every configuration runs once per seed."""
     metric: Metric = Metric()
     """The figure summarising each configuration in reports."""

@@ -119,6 +119,11 @@ class TrialRun(NamedTuple):
     def attempts(self) -> int:
         return int(self.tags.get(TAG_ATTEMPTS, "1"))
 
+    @property
+    def rounds(self) -> int:
+        """Rounds logged so far."""
+        return int(self.tags.get(TAG_ROUNDS, "0"))
+
 
 class StoredCheckpoint(NamedTuple):
     """A verified checkpoint read back from a run."""

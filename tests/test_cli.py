@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 import re
 from pathlib import Path
 
@@ -240,3 +241,28 @@ def test_bench_json_reports_ratios_per_task_and_budget(capsys):
         assert 0 < e["ratio"] < 10 and 0 < e["rollouts_only_ratio"] < 10
         assert e["ratio_quartiles"][0] <= e["ratio"] <= e["ratio_quartiles"][1]
         assert e["thesis_seconds_per_step_1_thread"] is None  # no published figure for the test task
+
+
+def test_two_million_seeds_are_refused_at_bounded_cost(tmp_path):
+    """Bad input is refused in seconds: a 16 MB seed list by its size, a seed range by max_trials."""
+    listed = tmp_path / "listed.yaml"
+    listed.write_text("name: x\ntask: point_reach\nseeds: [" + ", ".join(map(str, range(2_000_000))) + "]\n")
+    ranged = tmp_path / "ranged.yaml"
+    ranged.write_text("name: x\ntask: point_reach\nseeds: {first: 0, count: 2000000}\n")
+    for sweep, (line, path, fragment) in {
+        listed: (1, "(file)", "write long seed lists as seeds: {first: 0, count: N}"),
+        ranged: (3, "seeds", "2,000,000 trials, above max_trials = 1000"),
+    }.items():
+        started = time.monotonic()
+        result = cli("validate", str(sweep), cwd=tmp_path)
+        assert time.monotonic() - started < 20  # interpreter start included
+        assert result.returncode == 2
+        problem = PROBLEM_LINE.match(result.stderr.splitlines()[0])
+        assert problem and (int(problem["line"]), problem["path"]) == (line, path)
+        assert fragment in problem["message"]
+
+
+def test_seed_ranges_expand_to_consecutive_seeds(tmp_path):
+    sweep = tmp_path / "range.yaml"
+    sweep.write_text("name: x\ntask: point_reach\nseeds: {first: 3, count: 4}\n")
+    assert [t.config.seed for t in load_sweep(sweep).trials] == [3, 4, 5, 6]

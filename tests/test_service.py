@@ -20,6 +20,7 @@ import signal
 import threading
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -115,6 +116,45 @@ def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local
 
     status = cli("status", str(sweep), cwd=tmp_path)
     assert "FAILED" in status.stdout and "code_error: ValueError: toy method fails on round 2" in status.stdout
+
+
+def test_a_refused_checkpoint_is_skipped_for_the_one_before(tmp_path, local_ray):
+    """Resume from a store whose newest checkpoint was replaced by a pickle (with a matching manifest)."""
+    import json
+    import pickle
+    from urllib.parse import urlparse
+
+    from workers.checkpoint import digest
+
+    cleared = tmp_path / "cleared"
+    sweep = toy_sweep(tmp_path, "planted", retries=0, fail_on_round=3, fail_until_file=str(cleared))
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    assert SweepScheduler(load_sweep(sweep), tracker).run().failed == 1  # rounds 0-2 done, round 3 raised
+    _, (child,) = sweep_runs(tracker.uri, "planted")
+    assert tracker.logged_rounds(child.run_id) == {0, 1, 2}
+
+    marker = tmp_path / "pwned"
+    payload = pickle.dumps(RunsCode(str(marker)))
+    folder = Path(urlparse(tracker.client.get_run(child.run_id).info.artifact_uri).path) / "checkpoints/round_000002"
+    (folder / "state.npz").write_bytes(payload)
+    (folder / "manifest.json").write_text(json.dumps({"round": 2, "bytes": len(payload), "sha256": digest(payload)}))
+    cleared.touch()
+
+    outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
+    assert (outcome.finished, outcome.failed) == (1, 0)
+    assert not marker.exists()  # nothing was unpickled
+    _, (child,) = sweep_runs(tracker.uri, "planted")
+    assert child.status == FINISHED and child.metrics["failures/bad_checkpoint"] == 1.0
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # round 2 redone, logged once
+    assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
+
+
+class RunsCode:
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
 
 
 def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_path, local_ray):

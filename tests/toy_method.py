@@ -34,6 +34,8 @@ class ToySettings(MethodSettings):
     """Extra seconds every training call sleeps (gives fault tests time to kill the trainer mid-call)."""
     fail_on_round: int | None = None
     """Raise in this round (a deterministic code error)."""
+    fail_until_file: str | None = None
+    """With fail_on_round: raise only while this file does not exist (a fault the test then clears)."""
 
 
 class Weights(NamedTuple):
@@ -119,7 +121,8 @@ class ToyProgram(Program):
     def run_round(self, index: int):
         from workers.methods import RoundReport
 
-        if index == self.trial.settings.fail_on_round:
+        settings = self.trial.settings
+        if index == settings.fail_on_round and not (settings.fail_until_file and os.path.exists(settings.fail_until_file)):
             raise ValueError(f"toy method fails on round {index} as configured")
         observation, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
         recorder = TrajectoryRecorder(self.task.observe(observation))

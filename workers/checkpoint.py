@@ -19,6 +19,7 @@ import io
 import json
 import zipfile
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -104,6 +105,15 @@ def from_bytes(data: bytes) -> Tree:
     for path, value in values.items():
         _insert(tree, path, value)
     return tree
+
+
+def load(path: str | Path) -> Tree:
+    """Read a checkpoint file, e.g. ``mlruns/<run>/artifacts/checkpoints/round_000003/state.npz``.
+
+    The one-liner for a trained model: ``from workers.checkpoint import load; state = load(path)``;
+    ``state["program"]`` holds the method's state (weights as numpy arrays).
+    """
+    return from_bytes(Path(path).read_bytes())
 
 
 def digest(data: bytes) -> str:

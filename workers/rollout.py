@@ -43,8 +43,6 @@ class BatchEvaluator:
         self._datas = [mujoco.MjData(model) for _ in range(max(1, self.threads))]
         self._pool = mj_rollout.Rollout(nthread=self.threads)
         self._control_spec = task.control_spec(model)
-        self.simulated_steps = 0
-        """Environment steps simulated so far (trajectories x horizon), for throughput figures."""
 
     def close(self) -> None:
         """Stop the rollout threads."""
@@ -104,7 +102,6 @@ class BatchEvaluator:
                 states[:, t], frames[:, t] = physics, current_frames
                 if keep_substeps:
                     before_last[:, t] = substeps[:, -2] if skip > 1 else (state.physics if t == 0 else states[:, t - 1])
-        self.simulated_steps += n * horizon
         return RolloutBatch(state.physics, states, frames, actions, state.goal, before_last)
 
     @staticmethod
