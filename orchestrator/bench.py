@@ -132,7 +132,9 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> di
 
 
 def _mpc_trial(steps: int) -> TrialSpec:
-    settings = MpcSettings(planner=PlannerConfig(budget=SERVICE_BUDGET, horizon=HORIZON), max_steps=steps, round_steps=steps)
+    settings = MpcSettings(
+        planner=PlannerConfig(budget=SERVICE_BUDGET, horizon=HORIZON), max_steps=steps, round_steps=steps
+    )
     settings = METHODS["mpc"].resolve(settings, make_task(SERVICE_TASK))
     return TrialSpec("mpc", SERVICE_TASK, settings, 0)
 

@@ -247,7 +247,9 @@ def cmd_status(args) -> int:
 
 def cmd_report(args) -> int:
     from orchestrator import report
+    from orchestrator.scheduler import report_histories
     from orchestrator.tracking import FINISHED, Tracker
+    from workers.methods import METHODS
 
     tracker = Tracker(args.tracking_uri)
     name, experiment, loaded = _sweep_name(args.sweep)
@@ -259,14 +261,14 @@ def cmd_report(args) -> int:
     if loaded is not None:
         metric, mode = loaded.sweep.metric_name(), loaded.sweep.metric.mode
     else:
-        from workers.methods import METHODS
-
         method = runs[0].params.get("method", "mpc") if runs else "mpc"
         metric, mode = next(iter(METHODS[method].metrics)), "max"
     summary = report.summarize(runs, metric, mode)
     print(report.format_table(summary))
     output = args.output or Path("reports") / name
-    written = report.write_files(summary, output)
+    program = METHODS[summary.groups[0].method] if summary.groups else None
+    histories = report_histories(tracker, runs, program) if program else None
+    written = report.write_files(summary, output, histories)
     print(f"\nwrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     return 0
 

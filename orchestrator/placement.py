@@ -142,7 +142,9 @@ class TrialGroup:
 
     def actors(self) -> list[Any]:
         """Every actor of the group (runner first)."""
-        return ([self.runner] if self.runner is not None else []) + [a for group in self.workers.values() for a in group]
+        return ([self.runner] if self.runner is not None else []) + [
+            a for group in self.workers.values() for a in group
+        ]
 
     def teardown(self) -> None:
         for actor in self.actors():

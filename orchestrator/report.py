@@ -72,6 +72,7 @@ PUBLISHED_SECONDS_PER_STEP: dict[tuple[str, int, int], float] = {
 class TrialResult(NamedTuple):
     """One finished trial, reduced to what reports need."""
 
+    run_id: str
     trial_key: str
     task: str
     method: str
@@ -96,6 +97,7 @@ def result_from_run(run: TrialRun) -> TrialResult:
         if key.startswith(OVERRIDE_PREFIX)
     }
     return TrialResult(
+        run_id=run.run_id,
         trial_key=run.trial_key,
         task=run.params.get("task", run.tags.get("task", "?")),
         method=method,
@@ -134,7 +136,8 @@ class Group(NamedTuple):
         return float(np.mean(values)) if values else None
 
     def name(self) -> str:
-        parts = [*self.labels.values()]
+        program = METHODS.get(self.method)
+        parts = program.label_text(self.labels) if program and self.labels else list(self.labels.values())
         if self.variant:
             parts.append(self.variant)
         parts += [f"{k}={v}" for k, v in self.setting.items()]
@@ -153,8 +156,8 @@ class Summary(NamedTuple):
 
 
 def _published(task: str, method: str, params: dict[str, str], metric: str) -> tuple[float, float | None] | None:
-    if method != "mpc":
-        return None
+    if method != "mpc" or params.get("max_steps", "None") != "None":
+        return None  # Table 3 is for full-length MPC episodes
     budget = params.get("planner.budget", "None")
     if budget == "None":
         return None
@@ -176,7 +179,13 @@ def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max") -> Summa
     grouped: dict[tuple, list[TrialResult]] = defaultdict(list)
     for result in results:
         setting = {k: v for k, v in result.overrides.items() if k not in covered}
-        key = (result.task, result.method, tuple(result.labels.items()), result.variant or "", json.dumps(setting, sort_keys=True))
+        key = (
+            result.task,
+            result.method,
+            tuple(result.labels.items()),
+            result.variant or "",
+            json.dumps(setting, sort_keys=True),
+        )
         grouped[key].append(result)
     groups = []
     for (task, method_name, labels, variant, setting), members in grouped.items():
@@ -275,7 +284,9 @@ def budget_figure(summary: Summary):
         lines: dict[str, list[Group]] = defaultdict(list)
         for g in groups:
             if g.task == task:
-                name = " ".join([g.labels.get("algorithm", g.method), g.variant or "", *[f"{k}={v}" for k, v in g.setting.items()]])
+                name = " ".join(
+                    [g.labels.get("algorithm", g.method), g.variant or "", *[f"{k}={v}" for k, v in g.setting.items()]]
+                )  # noqa: E501
                 lines[name.strip()].append(g)
         for name, members in sorted(lines.items()):
             members.sort(key=lambda g: int(g.labels["budget"]))
@@ -317,7 +328,37 @@ def variant_figure(summary: Summary):
     return figure
 
 
-def write_files(summary: Summary, directory: Path) -> list[Path]:
+Histories = dict[str, dict[str, list[tuple[int, float]]]]
+"""run id -> metric -> [(step, value)], the curves of finished trials."""
+
+
+def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str]):
+    """Each curve metric against its step: one line per configuration, mean over seeds with +- sem shading."""
+    metrics = list(metrics)
+    figure, axes = plt.subplots(1, len(metrics), figsize=(6.5 * len(metrics), 4), squeeze=False)
+    for axis, metric in zip(axes[0], metrics):
+        for group in summary.groups:
+            series = [dict(histories.get(t.run_id, {}).get(metric, [])) for t in group.trials]
+            steps = sorted({step for s in series for step in s})
+            if not steps:
+                continue
+            values = np.array([[s.get(step, np.nan) for step in steps] for s in series])
+            counts = np.sum(np.isfinite(values), axis=0)
+            mean = np.nanmean(values, axis=0)
+            sem = np.where(counts > 1, np.nanstd(values, axis=0, ddof=min(1, len(series) - 1)) / np.sqrt(counts), 0.0)
+            label = f"{group.task} {group.name()} (n={group.n})"
+            axis.plot(steps, mean, label=label)
+            axis.fill_between(steps, mean - sem, mean + sem, alpha=0.2)
+        axis.set_xlabel("step")
+        axis.set_ylabel(metric)
+        axis.set_title(f"{metric}: mean +- sem over seeds")
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=8)
+    figure.tight_layout()
+    return figure
+
+
+def write_files(summary: Summary, directory: Path, histories: Histories | None = None) -> list[Path]:
     """summary.txt, summary.csv and the plots that fit the sweep, in ``directory``; returns their paths."""
     directory.mkdir(parents=True, exist_ok=True)
     paths = [directory / "summary.txt", directory / "summary.csv"]
@@ -325,9 +366,15 @@ def write_files(summary: Summary, directory: Path) -> list[Path]:
     paths[1].write_text(to_csv(summary))
     if not summary.groups:
         return paths
-    if any(g.labels.get("budget", "None").isdigit() for g in summary.groups):
+    if len({g.labels.get("budget") for g in summary.groups if g.labels.get("budget", "None").isdigit()}) > 1:
         figure = budget_figure(summary)
         paths.append(directory / "budget_curve.png")
+        figure.savefig(paths[-1], dpi=110)
+        plt.close(figure)
+    program = METHODS.get(summary.groups[0].method)
+    if histories and program is not None and program.curves:
+        figure = curves_figure(summary, histories, program.curves)
+        paths.append(directory / "curves.png")
         figure.savefig(paths[-1], dpi=110)
         plt.close(figure)
     if any(g.variant for g in summary.groups):

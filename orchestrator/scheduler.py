@@ -58,8 +58,8 @@ class ResourceError(ValueError):
 def trial_label(trial: Trial) -> str:
     """A short name for a trial: task, the method's labels, variant and seed."""
     config = trial.config
-    labels = METHODS[config.method].labels(config.spec())
-    parts = [config.task, *labels.values()]
+    program = METHODS[config.method]
+    parts = [config.task, *program.label_text(program.labels(config.spec()))]
     if trial.variant:
         parts.append(trial.variant)
     return "/".join(parts) + f"/s{config.seed}"
@@ -119,6 +119,17 @@ class SweepOutcome(NamedTuple):
     skipped: int
     """Trials already FINISHED in MLflow before this run (resume)."""
     table: str
+
+
+MAX_CURVE_RUNS = 200
+"""Curve plots read one metric history per run; above this many runs they are left out."""
+
+
+def report_histories(tracker: Tracker, runs: list[TrialRun], program) -> report.Histories | None:
+    """The curve metrics of finished runs, or None when there are none or too many runs."""
+    if not program.curves or not runs or len(runs) > MAX_CURVE_RUNS:
+        return None
+    return tracker.histories([r.run_id for r in runs], program.curves)
 
 
 def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
@@ -405,7 +416,7 @@ class SweepScheduler:
         state = attempt.state
         self._end_attempt(attempt)
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
-        detail = f"the same error as an earlier attempt (see its file)" if repeat else failure.detail
+        detail = "the same error as an earlier attempt (see its file)" if repeat else failure.detail
         self.tracker.record_failure(state.run_id, state.attempts, failure.kind, failure.cause, detail)
         if failure.kind == BAD_CHECKPOINT and attempt.checkpoint_round is not None:
             state.bad_checkpoints.add(attempt.checkpoint_round)
@@ -460,8 +471,9 @@ class SweepScheduler:
         runs = [r for r in self.tracker.trial_runs(parent_id) if r.status == FINISHED]
         summary = report.summarize(runs, self.sweep.metric_name(), self.sweep.metric.mode)
         table = report.format_table(summary)
+        histories = report_histories(self.tracker, runs, self.program)
         with tempfile.TemporaryDirectory() as directory:
-            artifacts = report.write_files(summary, Path(directory))
+            artifacts = report.write_files(summary, Path(directory), histories)
             totals = {"trials_finished": completed, "trials_failed": failed}
             self.tracker.end_sweep(parent_id, FINISHED, totals, failed_trials=failed, artifacts=artifacts)
         return table
@@ -470,7 +482,9 @@ class SweepScheduler:
         """Ctrl-C: the running trials' runs and the sweep's end KILLED, then their actors are stopped."""
         active = list(self._active)
         for attempt in active:
-            self.tracker.record_failure(attempt.state.run_id, attempt.state.attempts, "interrupted", "interrupted (Ctrl-C)", "")
+            self.tracker.record_failure(
+                attempt.state.run_id, attempt.state.attempts, "interrupted", "interrupted (Ctrl-C)", ""
+            )
             self.tracker.end_trial(attempt.state.run_id, KILLED)
         self.tracker.end_sweep(parent_id, KILLED, {}, interrupted=True)
         for attempt in active:

@@ -238,7 +238,12 @@ class TrialConfig(BaseModel):
     seed: int = Field(ge=0)
 
     def canonical(self) -> dict[str, Any]:
-        return {"method": self.method, "task": self.task, "settings": self.settings.model_dump(mode="json"), "seed": self.seed}
+        return {
+            "method": self.method,
+            "task": self.task,
+            "settings": self.settings.model_dump(mode="json"),
+            "seed": self.seed,
+        }
 
     def key(self) -> str:
         """Hash of the resolved config and seed: a trial's identity across runs and resumes."""
@@ -519,7 +524,9 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
             problems += _problems_from(error, file, root, program.Settings, prefix=("base",))
         if method == "mpc" and isinstance(base.get("planner"), dict) and "algorithm" in base["planner"]:
             line = _node_line(root, ("base", "planner", "algorithm"))
-            problems.append(SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level"))
+            problems.append(
+                SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level")
+            )
     if data.get("algorithm") is not None and method != "mpc":
         problems.append(SweepProblem(file, _node_line(root, ("algorithm",)), "algorithm", (
             f"'algorithm' applies to method mpc; for {method} set base.planner.algorithm"
@@ -546,9 +553,9 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
         if role not in program.role_names:
             known = ", ".join(program.role_names) or "none"
             hint = _closest_hint(str(role), program.role_names)
-            problems.append(SweepProblem(file, _node_line(root, ("resources", "workers", role)),
-                                         f"resources.workers.{role}",
-                                         f"method {method} has no role {role!r}{hint}; its roles: {known}"))  # fmt: skip
+            message = f"method {method} has no role {role!r}{hint}; its roles: {known}"
+            line = _node_line(root, ("resources", "workers", role))
+            problems.append(SweepProblem(file, line, f"resources.workers.{role}", message))
     metric = (data.get("metric") or {}).get("name")
     if metric is not None and metric not in program.metrics:
         problems.append(SweepProblem(file, _node_line(root, ("metric", "name")), "metric.name", (

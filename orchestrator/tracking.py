@@ -313,7 +313,9 @@ class Tracker:
         """Log one round: per-step series, round metrics at ``step``, files; the round marker last."""
         now = _now_ms()
         entries = [
-            Metric(key, float(value), now, series_start + t) for key, values in series.items() for t, value in enumerate(values)
+            Metric(key, float(value), now, series_start + t)
+            for key, values in series.items()
+            for t, value in enumerate(values)
         ]
         entries += [Metric(key, float(value), now, step) for key, value in metrics.items()]
         if artifacts:
@@ -336,7 +338,9 @@ class Tracker:
             tags=[RunTag(TAG_ERROR, cause[-MAX_TAG_LENGTH:]), RunTag(TAG_ERROR_CLASS, kind)],
             metrics=[Metric(f"failures/{kind}", 1.0, _now_ms(), attempt)],
         )
-        self.client.log_text(run_id, f"class: {kind}\ncause: {cause}\n\n{detail}", f"failures/attempt_{attempt:03d}_{kind}.txt")
+        self.client.log_text(
+            run_id, f"class: {kind}\ncause: {cause}\n\n{detail}", f"failures/attempt_{attempt:03d}_{kind}.txt"
+        )
 
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
         """Close a trial's run: FINISHED with its summary metrics, or FAILED / KILLED."""
@@ -353,6 +357,11 @@ class Tracker:
 
     def metric_history(self, run_id: str, key: str) -> list[tuple[int, float]]:
         return [(m.step, m.value) for m in self.client.get_metric_history(run_id, key)]
+
+    def histories(self, run_ids: Iterable[str], keys: Iterable[str]) -> dict[str, dict[str, list[tuple[int, float]]]]:
+        """Metric histories of several runs, for curve plots."""
+        keys = list(keys)
+        return {run_id: {key: sorted(self.metric_history(run_id, key)) for key in keys} for run_id in run_ids}
 
     def list_files(self, run_id: str, path: str | None = None) -> list[str]:
         """Artifact paths of a run (one level)."""

@@ -110,7 +110,7 @@ def test_wind_pushes_sideways_and_is_redrawn_every_period():
     raw.set_state(np.array([0.0, 0.0, 0.25, 1, 0, 0, 0]), np.zeros(6))
     winds, ys = [], []
     for _ in range(20):
-        obs, *_ , info = env.step(np.zeros(2))
+        obs, *_, info = env.step(np.zeros(2))
         winds.append(info["wind"])
         ys.append(obs[1])
     winds = np.array(winds)
@@ -130,9 +130,7 @@ def test_wind_pushes_sideways_and_is_redrawn_every_period():
 def test_the_middle_bridge_is_risky_but_crossable():
     """The wind is tuned so a straight run sometimes succeeds and sometimes falls (section 5.4.2)."""
     task = BridgeMaze(wind_max=30.0)
-    successes = [
-        task.episode_metrics(*run(task, waypoint_controller(MIDDLE), seed=s)[:3])["success"] for s in range(8)
-    ]
+    successes = [task.episode_metrics(*run(task, waypoint_controller(MIDDLE), seed=s)[:3])["success"] for s in range(8)]
     assert 0 < sum(successes) < 8
 
 

@@ -59,7 +59,9 @@ def test_torch_state_dicts_survive_as_arrays():
     other_optimiser = torch.optim.Adam(other.parameters())
     other_optimiser.load_state_dict(checkpoint.arrays_to_tensors(back["optimiser"]))
     assert torch.equal(other.weight, model.weight)
-    assert torch.equal(other_optimiser.state_dict()["state"][0]["exp_avg"], optimiser.state_dict()["state"][0]["exp_avg"])
+    assert torch.equal(
+        other_optimiser.state_dict()["state"][0]["exp_avg"], optimiser.state_dict()["state"][0]["exp_avg"]
+    )
 
 
 def test_object_arrays_cannot_be_written():

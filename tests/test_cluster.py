@@ -177,5 +177,5 @@ def test_sweep_on_two_node_cluster_with_mlflow_server(tmp_path, cluster, mlflow_
         # Checkpoints go through the server's proxied artifact store like every other file.
         assert [a.path for a in client.list_artifacts(child.info.run_id, "checkpoints")] == ["checkpoints/round_000000"]
     artifacts = {a.path for a in client.list_artifacts(parents[0].info.run_id)}
-    assert {"sweep.yaml", "summary.csv", "budget_curve.png"} <= artifacts  # proxied through the server
+    assert {"sweep.yaml", "summary.csv", "curves.png"} <= artifacts  # proxied through the server
     print(f"two-node sweep took {time.monotonic() - started:.1f} s")

@@ -296,7 +296,9 @@ def test_sequence_cost_terms_and_total():
     evaluator.reseed(5)
     prop = evaluator.propagate(np.zeros(3), actions)
     evaluator.reseed(5)
-    np.testing.assert_allclose(evaluator.costs(np.zeros(3), actions)[1]["c"], prop.particles[:, :, -1, 0].mean(1), atol=1e-5)
+    np.testing.assert_allclose(
+        evaluator.costs(np.zeros(3), actions)[1]["c"], prop.particles[:, :, -1, 0].mean(1), atol=1e-5
+    )
 
 
 def test_uncertainty_reductions():
@@ -322,9 +324,15 @@ def test_evaluator_is_reproducible_per_seed():
     model = tiny_model()
     actions = np.random.default_rng(0).uniform(-1, 1, (8, 5, 2))
     cost = lambda s, a, s2: s2.square().sum(-1)  # noqa: E731
-    a = EnsembleEvaluator(model, cost, RazerSettings(aleatoric_weight=1.0), particles=5, seed=3).costs(np.ones(3), actions)
-    b = EnsembleEvaluator(model, cost, RazerSettings(aleatoric_weight=1.0), particles=5, seed=3).costs(np.ones(3), actions)
-    c = EnsembleEvaluator(model, cost, RazerSettings(aleatoric_weight=1.0), particles=5, seed=4).costs(np.ones(3), actions)
+    a = EnsembleEvaluator(model, cost, RazerSettings(aleatoric_weight=1.0), particles=5, seed=3).costs(
+        np.ones(3), actions
+    )
+    b = EnsembleEvaluator(model, cost, RazerSettings(aleatoric_weight=1.0), particles=5, seed=3).costs(
+        np.ones(3), actions
+    )
+    c = EnsembleEvaluator(model, cost, RazerSettings(aleatoric_weight=1.0), particles=5, seed=4).costs(
+        np.ones(3), actions
+    )
     np.testing.assert_array_equal(a[0], b[0])
     assert not np.array_equal(a[0], c[0])
 
@@ -364,7 +372,13 @@ def test_safety_box_and_ensemble_config_validation():
 def test_presets_follow_tables_13_and_14():
     bridge, cheetah = EnsembleConfig.preset("bridge_maze"), EnsembleConfig.preset("noisy_halfcheetah")
     assert (bridge.hidden_layers, bridge.hidden_size, bridge.ensemble_size, bridge.activation) == (6, 400, 5, "silu")
-    assert (bridge.lr, bridge.batch_size, bridge.weight_decay, bridge.grad_norm, bridge.epochs) == (2e-3, 512, 1e-5, 2.0, 25)
+    assert (bridge.lr, bridge.batch_size, bridge.weight_decay, bridge.grad_norm, bridge.epochs) == (
+        2e-3,
+        512,
+        1e-5,
+        2.0,
+        25,
+    )
     assert (bridge.min_logvar, bridge.max_logvar) == (-10.0, 4.0)
     assert (cheetah.hidden_layers, cheetah.hidden_size, cheetah.lr, cheetah.batch_size) == (4, 200, 2e-4, 256)
     assert (cheetah.weight_decay, cheetah.epochs, cheetah.min_logvar, cheetah.grad_norm) == (3e-5, 50, -6.0, None)

@@ -76,7 +76,9 @@ def test_planning_cost_and_safety_box():
     next_obs[:, 8] = torch.tensor([1.0, 2.0, 3.0])
     next_obs[:, 0] = torch.tensor([0.0, 0.5, 0.0])
     action = torch.full((3, 6), 0.5)
-    np.testing.assert_allclose(task.planning_cost(obs, action, next_obs).numpy(), [-1 + 0.15, -2 + 0.15 + 100, -3 + 0.15])
+    np.testing.assert_allclose(
+        task.planning_cost(obs, action, next_obs).numpy(), [-1 + 0.15, -2 + 0.15 + 100, -3 + 0.15]
+    )
     (box,) = task.safety_boxes
     p = box_violation_probability(torch.tensor([[0.3] + [0.0] * 16]), torch.full((1, 17), 0.1), box)
     assert p.item() == pytest.approx(0.5)

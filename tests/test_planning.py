@@ -241,7 +241,9 @@ def spy_sampling(planner: CEMPlanner, monkeypatch) -> list[tuple[np.ndarray, np.
     calls = []
     sample = planner._sample
     monkeypatch.setattr(
-        planner, "_sample", lambda mean, std, count: calls.append((mean.copy(), std.copy(), count)) or sample(mean, std, count)
+        planner,
+        "_sample",
+        lambda mean, std, count: calls.append((mean.copy(), std.copy(), count)) or sample(mean, std, count),
     )
     return calls
 

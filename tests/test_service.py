@@ -86,7 +86,7 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     episodes = history(tracker, run_id, "episode_return")
     assert [s for s, _ in episodes] == [0, 1]
     assert children[0].metrics["mean_return"] == pytest.approx(np.mean([v for _, v in episodes]))
-    assert {"sweep.yaml", "summary.csv", "summary.txt", "budget_curve.png"} <= set(tracker.list_files(parent.run_id))
+    assert {"sweep.yaml", "summary.csv", "summary.txt", "curves.png"} <= set(tracker.list_files(parent.run_id))
     assert set(tracker.list_files(run_id, "episodes")) == {
         f"episodes/episode_00{i}.{ext}" for i in (0, 1) for ext in ("png", "npz")
     }
@@ -109,7 +109,7 @@ def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local
     assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1]  # not repeated
     files = tracker.list_files(child.run_id, "failures")
     assert [f.rsplit("_", 2)[-2:] for f in sorted(files)] == [["code", "error.txt"]] * 2
-    first = (tmp_path / "first.txt")
+    first = tmp_path / "first.txt"
     tracker.download(child.run_id, sorted(files)[0], tmp_path).rename(first)
     assert "Traceback" in first.read_text() and "toy_method.py" in first.read_text()
     assert "failures/lost_process" not in child.metrics
@@ -145,7 +145,12 @@ def test_a_refused_checkpoint_is_skipped_for_the_one_before(tmp_path, local_ray)
     assert not marker.exists()  # nothing was unpickled
     _, (child,) = sweep_runs(tracker.uri, "planted")
     assert child.status == FINISHED and child.metrics["failures/bad_checkpoint"] == 1.0
-    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # round 2 redone, logged once
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [
+        0,
+        1,
+        2,
+        3,
+    ]  # round 2 redone, logged once
     assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
 
 

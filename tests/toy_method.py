@@ -122,7 +122,9 @@ class ToyProgram(Program):
         from workers.methods import RoundReport
 
         settings = self.trial.settings
-        if index == settings.fail_on_round and not (settings.fail_until_file and os.path.exists(settings.fail_until_file)):
+        if index == settings.fail_on_round and not (
+            settings.fail_until_file and os.path.exists(settings.fail_until_file)
+        ):
             raise ValueError(f"toy method fails on round {index} as configured")
         observation, _ = self.env.reset(seed=int(self.rng.integers(2**31)))
         recorder = TrajectoryRecorder(self.task.observe(observation))
@@ -137,7 +139,11 @@ class ToyProgram(Program):
         trainer = self.roles["trainer"]
         self.weights, loss = trainer.submit(0, "train", trainer.share(dataset)).result()
         done = index + 1 >= self.trial.settings.rounds
-        metrics = {"loss": loss, "weights_version": float(self.weights.version), "dataset_steps": float(self.buffer.steps)}
+        metrics = {
+            "loss": loss,
+            "weights_version": float(self.weights.version),
+            "dataset_steps": float(self.buffer.steps),
+        }
         return RoundReport(index, metrics, step=index, done=done, summary={"final_loss": loss} if done else {})
 
     def state_dict(self) -> dict[str, Any]:

@@ -54,9 +54,7 @@ class ProgramRunner:
         expected_code: the driver's :func:`workers.code_fingerprint`; a mismatch is refused.
     """
 
-    def __init__(
-        self, trial: TrialSpec, roles: dict[str, RoleGroup], cpus: int = 1, expected_code: str | None = None
-    ):
+    def __init__(self, trial: TrialSpec, roles: dict[str, RoleGroup], cpus: int = 1, expected_code: str | None = None):
         if expected_code is not None and expected_code != code_fingerprint():
             raise RuntimeError(
                 f"this node runs different icemlab code (fingerprint {code_fingerprint()}) than the driver "

@@ -117,7 +117,7 @@ def petsus_propagate(
         noise = torch.randn(particle_in.shape, generator=generator)
         sampled = particle_in + mu[:, :rows] + var.sqrt() * noise
 
-        def to_particles(x: torch.Tensor) -> torch.Tensor:
+        def to_particles(x: torch.Tensor, index: torch.Tensor = index) -> torch.Tensor:
             """(K, N per, d) rows back to each sequence's particles (N, P, d)."""
             return x.view(k, n, per, d).permute(1, 2, 0, 3).reshape(n, slots_total, d).gather(1, index)
 

@@ -194,6 +194,8 @@ class Program(ABC):
     label_paths: ClassVar[dict[str, tuple[str, ...]]] = {}
     """The labels of :meth:`labels` -> the settings paths each one shows (reports group by labels, then by
     the other swept paths)."""
+    curves: ClassVar[tuple[str, ...]] = ()
+    """Metrics that reports draw as curves against their step, one line per configuration (mean over seeds)."""
     role_names: ClassVar[tuple[str, ...]] = ()
     """Names of the roles :meth:`roles_for` may declare (sweeps size them under ``resources.workers``)."""
 
@@ -245,6 +247,11 @@ class Program(ABC):
     def planned_rounds(cls, trial: TrialSpec) -> int:
         """Rounds of the whole trial (for progress and ETA; a trial may end sooner by reporting done)."""
 
+    @classmethod
+    def label_text(cls, labels: Mapping[str, str]) -> list[str]:
+        """The labels as short words for run names and report rows."""
+        return [value if not value.replace(".", "").isdigit() else f"{key}={value}" for key, value in labels.items()]
+
     # --------------------------------------------------------------- run
     def total_rounds(self) -> int:
         return self.planned_rounds(self.trial)
@@ -261,7 +268,7 @@ class Program(ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Continue from a :meth:`state_dict` (in a fresh program of the same trial)."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - most programs hold nothing to release
         """Release environments and thread pools."""
 
     # ----------------------------------------------------------- progress

@@ -52,6 +52,7 @@ class MpcProgram(Program):
     description = "MPC episodes with iCEM or a CEM baseline on MuJoCo ground truth (chapter 3)"
     metrics = {"episode_return": "mean_return", "success": "success_rate"}
     label_paths = {"algorithm": ("algorithm", "planner.algorithm"), "budget": ("planner.budget",)}
+    curves = ("step/return",)
     role_names = ("simulation",)
 
     settings: MpcSettings
@@ -73,6 +74,10 @@ class MpcProgram(Program):
     def labels(cls, trial: TrialSpec) -> dict[str, str]:
         planner = trial.settings.planner
         return {"algorithm": planner.algorithm, "budget": str(planner.budget)}
+
+    @classmethod
+    def label_text(cls, labels) -> list[str]:
+        return [labels["algorithm"], f"b{labels['budget']}"]
 
     def __init__(self, trial: TrialSpec, roles, cpus: int):
         super().__init__(trial, roles, cpus)
@@ -172,14 +177,14 @@ class MpcProgram(Program):
             }
         )
         name = f"episodes/episode_{self.episode_index:03d}"
-        labels = self.labels(self.trial)
-        title = (
-            f"{self.trial.task}/{labels['algorithm']}/b{labels['budget']}/s{self.trial.seed} "
-            f"episode {self.episode_index} (return {result.episode_return:.1f})"
-        )
+        words = "/".join(self.label_text(self.labels(self.trial)))
+        title = f"{self.trial.task}/{words}/s{self.trial.seed} episode {self.episode_index}"
+        title += f" (return {result.episode_return:.1f})"
         figure = plots.episode_png(title, result.rewards, result.planning_seconds)
         data = io.BytesIO()
-        np.savez_compressed(data, **{k: v for k, v in episode.trajectory().to_tree().items() if isinstance(v, np.ndarray)})
+        np.savez_compressed(
+            data, **{k: v for k, v in episode.trajectory().to_tree().items() if isinstance(v, np.ndarray)}
+        )
         return metrics, [Artifact(f"{name}.png", figure), Artifact(f"{name}.npz", data.getvalue())]
 
     def _summary(self) -> dict[str, float]:
@@ -194,7 +199,9 @@ class MpcProgram(Program):
 
     # ------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
-        finished = {key: np.array([e[key] for e in self.finished]) for key in ("episode_return", "success", "planning_seconds")}
+        finished = {
+            key: np.array([e[key] for e in self.finished]) for key in ("episode_return", "success", "planning_seconds")
+        }
         state: dict[str, Any] = {"episode_index": self.episode_index, "finished": finished}
         if self.episode is not None and not self.episode.done:
             # Mid-episode: the next round continues this episode where it stopped.

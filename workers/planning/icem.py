@@ -163,7 +163,9 @@ class CEMPlanner:
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Continue exactly where :meth:`state_dict` was taken."""
-        self.memory = PlannerMemory(np.array(state["mean"]), None if "elites" not in state else np.array(state["elites"]))
+        self.memory = PlannerMemory(
+            np.array(state["mean"]), None if "elites" not in state else np.array(state["elites"])
+        )
         self.rng = restore_rng(state["rng"])
 
     # ---------------------------------------------------------- sampling

@@ -91,7 +91,9 @@ class NoisyHalfCheetahEnv(gym.Wrapper):
             raw.set_state(qpos, qvel)
             obs = raw._get_obs()
         reward = float(info["x_velocity"] - CTRL_COST_WEIGHT * np.square(clean).sum())
-        info = dict(info, noisy_step=noisy, applied_action=applied, ceiling_violation=bool(obs[HEIGHT_INDEX] > self.ceiling))
+        info = dict(
+            info, noisy_step=noisy, applied_action=applied, ceiling_violation=bool(obs[HEIGHT_INDEX] > self.ceiling)
+        )
         return obs, reward, terminated, truncated, info
 
 
@@ -148,7 +150,7 @@ class NoisyHalfCheetah(ModelBasedTask):
     def episode_metrics(
         self, observations: np.ndarray, rewards: np.ndarray, infos: list[dict[str, Any]]
     ) -> dict[str, float]:
-        """return, ceiling_violations (counted apart from the return), failure (any violation), noisy_steps, mean_velocity."""
+        """return, ceiling_violations (apart from the return), failure (any violation), noisy_steps, mean_velocity."""
         observations = np.asarray(observations)
         violations = int(np.sum(observations[1:, HEIGHT_INDEX] > self.ceiling))
         return {
