@@ -88,6 +88,9 @@ class EpisodeBuffer:
         index = np.arange(self.size) if slots is None else slots
         return Episodes(*(getattr(self, name)[index] for name in Episodes._fields))
 
+    def __len__(self) -> int:
+        return self.size
+
     @property
     def transitions(self) -> int:
         return self.size * self.horizon

@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from workers.distance.buffer import EpisodeBuffer
+from workers.distance.buffer import EpisodeBuffer, Episodes
 
 
 class GoalTransitions(NamedTuple):
@@ -51,13 +51,14 @@ def future_fraction(k: float) -> float:
 
 
 def sample_her_transitions(
-    buffer: EpisodeBuffer, batch_size: int, her_k: float, rng: np.random.Generator
+    buffer: EpisodeBuffer | Episodes, batch_size: int, her_k: float, rng: np.random.Generator
 ) -> GoalTransitions:
-    """Draw transitions uniformly over the buffer and relabel a k / (1 + k) fraction with future goals."""
-    if buffer.size == 0:
+    """Draw transitions uniformly over the stored episodes and relabel a k / (1 + k) fraction with future goals."""
+    stored = len(buffer)
+    if stored == 0:
         raise ValueError("cannot sample from an empty buffer")
-    horizon = buffer.horizon
-    episodes = rng.integers(buffer.size, size=batch_size)
+    horizon = buffer.actions.shape[1]
+    episodes = rng.integers(stored, size=batch_size)
     steps = rng.integers(horizon, size=batch_size)
     relabelled = rng.random(batch_size) < future_fraction(her_k)
     # A future index f uniform in [t + 1, T]: ag(s_{t+1}) is already "achieved after a_t".

@@ -206,7 +206,7 @@ class DistanceModel:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
-        return float(loss), prediction.detach().numpy().astype(np.float64)
+        return float(loss.detach()), prediction.detach().numpy().astype(np.float64)
 
     def copy_target(self) -> None:
         """d_old <- d_theta (Alg. 4 line 10)."""
