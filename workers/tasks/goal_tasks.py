@@ -423,7 +423,7 @@ class FetchPickAndPlace(FetchTask):
 
     def goal_distance(self, achieved, goals):
         # Per 3-D part; the larger of the box's and the gripper's distances decides success.
-        achieved, goals = np.asarray(achieved), np.asarray(goals)
+        achieved, goals = np.broadcast_arrays(np.asarray(achieved), np.asarray(goals))
         parts = achieved.shape[-1] // 3
         shape = achieved.shape[:-1] + (parts, 3)
         return np.linalg.norm(achieved.reshape(shape) - goals.reshape(shape), axis=-1).max(axis=-1)
