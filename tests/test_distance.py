@@ -347,6 +347,14 @@ def test_q_targets_are_clipped_to_the_table_19_range():
     assert default_q_clip("distance", 0.98, 50) == -1275.0
 
 
+def test_reward_scale_multiplies_rewards_and_the_derived_clip():
+    settings = LearnerSettings(hidden=(8,), batch_size=16, reward_scale=0.5)
+    reward = SparseReward(lambda ag, g: np.zeros(len(ag), dtype=bool))
+    learner = GoalLearner(settings, 4, 2, 2, 6, reward, -50.0, seed=0)
+    learner.add_episodes(marked_episodes(2, 6))
+    assert (learner.sample()[1] == -0.5).all() and learner.q_clip_low == -25.0
+
+
 @pytest.mark.parametrize("algorithm", ["sac", "ddpg"])
 def test_learner_updates_and_state_round_trip(algorithm, tmp_path):
     """Export through .npz + .json (no pickle), import into a fresh learner: identical next updates."""
@@ -522,3 +530,14 @@ def test_measure_learner_updates_reports_both_rates():
     )
     assert figures["learner_updates_per_second"] > 0 and figures["bare_updates_per_second"] > 0
     assert figures["updates_per_side"] == 4.0
+
+
+@pytest.mark.slow
+def test_sparse_her_learns_fetch_reach_within_minutes():
+    """The whole loop (collection, HER, SAC, evaluation) on FetchReach: success rises from ~0 to most episodes."""
+    loop = NeuralAPSP(LoopSettings(method="sparse_her", task="fetch_reach", episodes_per_iteration=2, eval_episodes=10))
+    history = loop.run(12)
+    loop.close()
+    successes = [metrics["eval/success"] for metrics in history]
+    assert successes[0] <= 0.3
+    assert max(successes[-3:]) >= 0.7, successes

@@ -244,7 +244,8 @@ class GoalLearner:
         settings: Table 19 settings.
         obs_dim, action_dim, goal_dim, horizon: problem sizes.
         reward: called on every sampled batch; a DistanceReward gets new weights by :meth:`set_reward_weights`.
-        q_clip_low: lower Q-target clip (see :func:`default_q_clip`); ``settings.q_clip_low`` wins when set.
+        q_clip_low: lower Q-target clip for unscaled rewards (see :func:`default_q_clip`), multiplied by
+            ``settings.reward_scale``; ``settings.q_clip_low`` wins when set.
         seed: initialisation, sampling and exploration derive from it.
     """
 
@@ -262,7 +263,8 @@ class GoalLearner:
         self.settings = settings
         self.reward = reward
         self.horizon = horizon
-        self.q_clip_low = settings.q_clip_low if settings.q_clip_low is not None else q_clip_low
+        derived = q_clip_low * settings.reward_scale
+        self.q_clip_low = settings.q_clip_low if settings.q_clip_low is not None else derived
         seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(4)]
         self.policy = GoalPolicy(
             settings.algorithm,
@@ -319,7 +321,7 @@ class GoalLearner:
     def sample(self) -> tuple[GoalTransitions, np.ndarray]:
         """A HER batch and its rewards from the current reward function."""
         batch = sample_her_transitions(self.buffer, self.settings.batch_size, self.settings.her_k, self.rng)
-        return batch, np.asarray(self.reward(batch), dtype=np.float64)
+        return batch, self.settings.reward_scale * np.asarray(self.reward(batch), dtype=np.float64)
 
     def train(self, updates: int | None = None, episodes: int | None = None) -> dict[str, float]:
         """``updates`` gradient steps (default: updates_per_episode x ``episodes``); mean metrics."""
