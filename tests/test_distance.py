@@ -23,6 +23,7 @@ from workers.distance.counts import (
     RandomProjectionHash,
     StateActionCounts,
     code_collision_probability,
+    collision_radius,
 )
 from workers.distance.her import future_fraction, sample_her_transitions
 from workers.distance.learners import GoalLearner, GoalPolicy, default_q_clip
@@ -131,6 +132,13 @@ def test_collision_rate_follows_the_projection_geometry():
         groups.append(whole)
     assert rates == sorted(rates, reverse=True) and groups == sorted(groups, reverse=True)
     assert rates[0] > 0.95 and rates[-1] < 0.3
+
+
+def test_collision_radius_of_the_table_20_hashes():
+    """Whole codes collide half the time at ~sigma ln 2 / (0.8 k): fine for Fetch, coarse for Point Maze."""
+    assert code_collision_probability(collision_radius(0.3, 128), 0.3, 128) == pytest.approx(0.5)
+    assert collision_radius(0.3, 128) == pytest.approx(0.3 * np.log(2) / (np.sqrt(2 / np.pi) * 128), rel=0.01)
+    assert collision_radius(20.0, 32) == pytest.approx(0.54, abs=0.01)
 
 
 def test_pair_counts_equal_a_brute_force_count():

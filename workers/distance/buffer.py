@@ -107,7 +107,7 @@ class EpisodeBuffer:
             raise ValueError(f"state holds {size} episodes, this buffer only {self.max_episodes}")
         for name in Episodes._fields:
             target = getattr(self, name)
-            target[:] = 0
             target[:size] = state.arrays[name]
+            target[size : max(size, self.size)] = 0  # only slots that held episodes (untouched pages stay lazy)
         self.size, self.next = size, int(state.meta["next"])
         self.episodes_added = int(state.meta["episodes_added"])

@@ -41,7 +41,7 @@ from scipy.special import ndtr
 
 from workers.distance.buffer import Episodes
 from workers.distance.config import SKETCH_MODULI, CountSettings
-from workers.distance.state import State
+from workers.distance.state import State, with_prefix
 
 COUNT_DTYPE = np.uint32
 """Counter type of the sketch tables: 24 MB per sketch of six ~1e6 rows (int64 would double it)."""
@@ -110,6 +110,27 @@ def code_collision_probability(distance: float | np.ndarray, sigma: float, key_d
     pdf_u = pdf_zero * np.exp(-0.5 * np.minimum(u, 1e6) ** 2)
     per_component = np.where(c > 0, 2.0 * ndtr(u) - 1.0 - 2.0 * safe * (pdf_zero - pdf_u), 1.0)
     return per_component**key_dim
+
+
+def collision_radius(sigma: float, key_dim: int, probability: float = 0.5) -> float:
+    """Input distance at which two inputs share their whole code with the given probability.
+
+    The scale at which a count model tells inputs apart, in the raw units of
+    its input (App. E.1 hashes without preprocessing). About
+    sigma ln(1/p) / (0.8 k) for small distances: Table 20's Fetch values
+    (sigma 0.3, k 128) give 0.002, so N(s, a) and N(s, a, g') there count
+    near-exact repeats only; Point Maze's (sigma 20, k 32) give about 0.5.
+    """
+    low, high = 0.0, sigma
+    while code_collision_probability(high, sigma, key_dim) > probability:
+        high *= 2
+    for _ in range(60):
+        middle = (low + high) / 2
+        if code_collision_probability(middle, sigma, key_dim) > probability:
+            low = middle
+        else:
+            high = middle
+    return (low + high) / 2
 
 
 class CountMinSketch:
@@ -227,8 +248,7 @@ class StateActionCounts:
     def load(self, state: State) -> None:
         self.hash.matrix = np.array(state.arrays["matrix"])
         self.hash.offset = np.array(state.arrays["offset"])
-        sketch = {key[len("sketch/") :]: value for key, value in state.arrays.items() if key.startswith("sketch/")}
-        self.sketch.load(State(sketch, state.meta["sketch"]))
+        self.sketch.load(State(with_prefix(state.arrays, "sketch/"), state.meta["sketch"]))
 
 
 class PairCounts(StateActionCounts):
@@ -278,7 +298,9 @@ class PairCounts(StateActionCounts):
             codes = self.episode_pair_codes(episodes.observations[e], episodes.actions[e], episodes.achieved_goals[e])
             self.sketch.add(codes)
 
-    def query(self, observations: np.ndarray, actions: np.ndarray, goals: np.ndarray) -> np.ndarray:  # type: ignore[override]
+    def query(  # type: ignore[override]
+        self, observations: np.ndarray, actions: np.ndarray, goals: np.ndarray
+    ) -> np.ndarray:
         """N(s, a, g) for a batch, (N,) int64."""
         return self.sketch.query(self.pair_codes(observations, actions, goals))
 
@@ -316,5 +338,4 @@ class CountModels:
     def load(self, state: State) -> None:
         for name, model in (("single", self.single), ("pair", self.pair)):
             prefix = f"{name}/"
-            arrays = {k[len(prefix) :]: v for k, v in state.arrays.items() if k.startswith(prefix)}
-            model.load(State(arrays, state.meta[name]))
+            model.load(State(with_prefix(state.arrays, prefix), state.meta[name]))

@@ -44,9 +44,11 @@ from workers.distance.state import (
     load_optimizer_state,
     module_arrays,
     optimizer_state,
+    part_of,
     restore_generator,
     restore_torch_generator,
     torch_generator_array,
+    with_prefix,
 )
 
 SB3_DECISION = """\
@@ -196,7 +198,7 @@ class GoalPolicy:
 
     def load_weights(self, weights: State) -> None:
         def part(prefix: str) -> dict[str, np.ndarray]:
-            return {k[len(prefix) :]: v for k, v in weights.arrays.items() if k.startswith(prefix)}
+            return with_prefix(weights.arrays, prefix)
 
         load_module_arrays(self.actor, part("actor/"))
         self.obs_norm.load(State(part("obs_norm/"), weights.meta["obs_norm"]))
@@ -459,8 +461,7 @@ class GoalLearner:
         """Restore :meth:`state` into a learner built with the same settings."""
 
         def part(name: str) -> State:
-            prefix = f"{name}/"
-            return State({k[len(prefix) :]: v for k, v in state.arrays.items() if k.startswith(prefix)}, state.meta[name])
+            return part_of(state, name)
 
         self.policy.load_weights(part("policy"))
         load_module_arrays(self.critics, part("critics").arrays)

@@ -43,7 +43,7 @@ from workers.distance.config import (
 )
 from workers.distance.learners import GoalLearner, default_q_clip
 from workers.distance.rewards import DistanceReward, SparseReward
-from workers.distance.state import State, generator_state, restore_generator
+from workers.distance.state import State, generator_state, part_of, restore_generator
 from workers.distance.trainer import DistanceTrainer
 from workers.tasks.goal_tasks import GoalTask, make_goal_task
 
@@ -224,7 +224,9 @@ class NeuralAPSP:
         metrics["episodes"] = float(self.episodes_collected)
         return metrics
 
-    def run(self, iterations: int, callback: Callable[[dict[str, float]], None] | None = None) -> list[dict[str, float]]:
+    def run(
+        self, iterations: int, callback: Callable[[dict[str, float]], None] | None = None
+    ) -> list[dict[str, float]]:
         """Several iterations; ``callback`` sees each iteration's metrics."""
         history = []
         for _ in range(iterations):
@@ -255,8 +257,7 @@ class NeuralAPSP:
             raise ValueError("the state was saved by a loop with other settings")
 
         def part(name: str) -> State:
-            prefix = f"{name}/"
-            return State({k[len(prefix) :]: v for k, v in state.arrays.items() if k.startswith(prefix)}, state.meta[name])
+            return part_of(state, name)
 
         self.learner.load(part("learner"))
         if self.trainer is not None:

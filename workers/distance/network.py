@@ -31,6 +31,7 @@ from workers.distance.state import (
     load_optimizer_state,
     module_arrays,
     optimizer_state,
+    with_prefix,
 )
 
 
@@ -126,7 +127,7 @@ class DistanceFunction:
         """Load what :meth:`weights` exported (same architecture)."""
 
         def part(prefix: str) -> dict[str, np.ndarray]:
-            return {k[len(prefix) :]: v for k, v in weights.arrays.items() if k.startswith(prefix)}
+            return with_prefix(weights.arrays, prefix)
 
         load_module_arrays(self.net, part("net/"))
         self.obs_norm.load(State(part("obs_norm/"), weights.meta["obs_norm"]))
@@ -222,7 +223,7 @@ class DistanceModel:
 
     def load(self, state: State) -> None:
         def part(prefix: str) -> dict[str, np.ndarray]:
-            return {k[len(prefix) :]: v for k, v in state.arrays.items() if k.startswith(prefix)}
+            return with_prefix(state.arrays, prefix)
 
         self.function.load_weights(State(part("function/"), state.meta["function"]))
         load_module_arrays(self.target, part("target/"))

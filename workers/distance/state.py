@@ -37,11 +37,14 @@ def merge_states(**parts: State) -> State:
     return State(arrays, meta)
 
 
+def with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    """The arrays whose keys start with ``prefix``, with the prefix removed."""
+    return {key[len(prefix) :]: value for key, value in arrays.items() if key.startswith(prefix)}
+
+
 def part_of(state: State, name: str) -> State:
-    """The named part of a merged State."""
-    prefix = f"{name}/"
-    arrays = {key[len(prefix) :]: value for key, value in state.arrays.items() if key.startswith(prefix)}
-    return State(arrays, state.meta[name])
+    """The named part of a merged State (arrays under ``name/``, meta under ``name``)."""
+    return State(with_prefix(state.arrays, f"{name}/"), state.meta[name])
 
 
 def save_state(state: State, path: str | Path) -> None:

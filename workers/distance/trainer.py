@@ -29,7 +29,7 @@ from workers.distance.losses import (
     triangular_targets,
 )
 from workers.distance.network import DistanceModel
-from workers.distance.state import State, generator_state, restore_generator
+from workers.distance.state import State, generator_state, part_of, restore_generator
 
 
 class DistanceTrainer:
@@ -162,8 +162,7 @@ class DistanceTrainer:
         """Restore :meth:`state` into a trainer built with the same settings."""
 
         def part(name: str) -> State:
-            prefix = f"{name}/"
-            return State({k[len(prefix) :]: v for k, v in state.arrays.items() if k.startswith(prefix)}, state.meta[name])
+            return part_of(state, name)
 
         self.model.load(part("model"))
         self.buffer.load(part("buffer"))
