@@ -100,7 +100,7 @@ def test_sketch_with_published_moduli_is_exact_at_this_load():
 def test_keys_separate_the_codes_the_thesis_weighting_merges():
     """Weighting component l by 2^l gives (2, 0) and (0, 1) one key in every row; universal keys separate them."""
     moduli = np.array([999931, 999953, 999959, 999961, 999979, 999983])
-    thesis_key = lambda code: (sum(c * 2**l for l, c in enumerate(code)) % moduli)  # noqa: E731
+    thesis_key = lambda code: sum(c * 2**l for l, c in enumerate(code)) % moduli  # noqa: E731
     assert (thesis_key((2, 0)) == thesis_key((0, 1))).all()
     sketch = CountMinSketch(2, np.random.default_rng(0))
     sketch.add(np.array([[2, 0]] * 5))
@@ -286,8 +286,9 @@ def test_merge_and_relax_rates_count_over_the_whole_batch():
 def test_triangular_phase_only_trains_masked_samples():
     """With no pair counts at all (no goal ever reached) the triangular loss leaves the network untouched."""
     episodes = marked_episodes(2, 8)
-    settings = DistanceSettings(hidden=(16,), batch_size=32, temporal_updates_per_episode=0,
-                                triangular_updates_per_episode=3)
+    settings = DistanceSettings(
+        hidden=(16,), batch_size=32, temporal_updates_per_episode=0, triangular_updates_per_episode=3
+    )
     trainer = DistanceTrainer(settings, CountSettings(single_key_dim=8, pair_key_dim=8, sigma=0.01), 4, 2, 2, 8)
     trainer.add_episodes(episodes)
     before = {k: v.copy() for k, v in trainer.reward_weights().arrays.items() if k.startswith("net/")}
@@ -502,8 +503,12 @@ def test_collected_episodes_have_the_task_layout():
 
 @pytest.mark.parametrize("method", ["ours_her", "sparse_her", "ddl_her"])
 def test_loop_state_round_trip_continues_identically(method, tmp_path):
-    settings = LoopSettings(method=method, task="fetch_reach", seed=3, **(
-        TINY_LOOP if method != "sparse_her" else {k: v for k, v in TINY_LOOP.items() if k != "distance"}))
+    settings = LoopSettings(
+        method=method,
+        task="fetch_reach",
+        seed=3,
+        **(TINY_LOOP if method != "sparse_her" else {k: v for k, v in TINY_LOOP.items() if k != "distance"}),
+    )
     first = NeuralAPSP(settings)
     metrics = first.iteration()
     if method != "sparse_her":  # episodes are merged before the distance trains: iteration 0 trains too
@@ -518,9 +523,14 @@ def test_loop_state_round_trip_continues_identically(method, tmp_path):
 
 
 def test_state_files_hold_no_pickled_objects(tmp_path):
-    trainer = DistanceTrainer(DistanceSettings(hidden=(8,), temporal_updates_per_episode=1,
-                                               triangular_updates_per_episode=1, batch_size=8),
-                              CountSettings(single_key_dim=4, pair_key_dim=4, sigma=1.0), 4, 2, 2, 5)
+    trainer = DistanceTrainer(
+        DistanceSettings(hidden=(8,), temporal_updates_per_episode=1, triangular_updates_per_episode=1, batch_size=8),
+        CountSettings(single_key_dim=4, pair_key_dim=4, sigma=1.0),
+        4,
+        2,
+        2,
+        5,
+    )
     trainer.add_episodes(marked_episodes(2, 5))
     trainer.train()
     save_state(trainer.state(), tmp_path / "trainer")

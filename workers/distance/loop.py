@@ -80,9 +80,7 @@ class LoopSettings(BaseModel):
         defaults = method_settings(self.method, self.task)
         if defaults.distance is None and self.distance:
             raise ValueError(f"{self.method} has no distance network; remove the distance overrides")
-        distance = (
-            DistanceSettings(**(defaults.distance.model_dump() | self.distance)) if defaults.distance else None
-        )
+        distance = DistanceSettings(**(defaults.distance.model_dump() | self.distance)) if defaults.distance else None
         return MethodSettings(
             method=self.method,
             counts=CountSettings(**(defaults.counts.model_dump() | self.counts)),
