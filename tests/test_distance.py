@@ -100,7 +100,7 @@ def test_sketch_with_published_moduli_is_exact_at_this_load():
 def test_keys_separate_the_codes_the_thesis_weighting_merges():
     """Weighting component l by 2^l gives (2, 0) and (0, 1) one key in every row; universal keys separate them."""
     moduli = np.array([999931, 999953, 999959, 999961, 999979, 999983])
-    thesis_key = lambda code: sum(c * 2**l for l, c in enumerate(code)) % moduli  # noqa: E731
+    thesis_key = lambda code: sum(c * 2**place for place, c in enumerate(code)) % moduli  # noqa: E731
     assert (thesis_key((2, 0)) == thesis_key((0, 1))).all()
     sketch = CountMinSketch(2, np.random.default_rng(0))
     sketch.add(np.array([[2, 0]] * 5))
