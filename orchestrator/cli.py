@@ -353,10 +353,27 @@ COMMANDS = {
 }
 
 
+def secure_local_ray(args) -> None:
+    """A local Ray that icemlab starts keeps Ray's token authentication and serves no metrics.
+
+    Its servers listen on every interface; the token is what keeps others out, whatever the environment
+    says. Ray's Prometheus exporter answers anyone without a token, and icemlab does not use it.
+    Ray reads these variables when it is imported, so this runs before any command imports it.
+    """
+    if not (args.command == "bench" or (args.command == "run" and not args.address)):
+        return
+    mode = os.environ.get("RAY_AUTH_MODE", "token")
+    if mode != "token":
+        print(f"icemlab: RAY_AUTH_MODE={mode} ignored: the local Ray keeps token authentication on", file=sys.stderr)
+    os.environ["RAY_AUTH_MODE"] = "token"
+    os.environ.setdefault("RAY_enable_metrics_collection", "0")
+
+
 def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     args = build_parser().parse_args(argv)
+    secure_local_ray(args)
     return COMMANDS[args.command](args)
 
 

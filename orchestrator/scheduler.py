@@ -154,7 +154,15 @@ def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
                 "RAY_AUTH_MODE=token and provide the token (RAY_AUTH_TOKEN or ~/.ray/auth_token)."
             ) from None
     else:
-        ray.init(num_cpus=num_cpus or os.cpu_count(), **common)
+        # A local Ray listens on every interface (GCS, raylet, workers); its token authentication is what
+        # keeps a neighbour on the network from running code through those ports (CVE-2023-48022).
+        # Ray reads the mode when it is imported, so the command line sets it first (see cli.main).
+        if os.environ.get("RAY_AUTH_MODE", "token") != "token":
+            raise ConnectionError(
+                f"RAY_AUTH_MODE={os.environ['RAY_AUTH_MODE']}: icemlab does not start a local Ray without token "
+                "authentication; unset RAY_AUTH_MODE"
+            )
+        ray.init(num_cpus=num_cpus or os.cpu_count(), dashboard_host="127.0.0.1", **common)
     return True
 
 

@@ -140,6 +140,24 @@ class Tracker:
     def __init__(self, tracking_uri: str | None = None):
         self.uri = resolve_tracking_uri(tracking_uri)
         self.client = MlflowClient(tracking_uri=self.uri)
+        if self.uri.startswith("sqlite:///"):
+            self._create_sqlite_store(Path(self.uri.removeprefix("sqlite:///")))
+
+    def _create_sqlite_store(self, database: Path) -> None:
+        """Create (or migrate) the embedded store under a file lock.
+
+        MLflow creates its tables on first use; two processes doing that at once (``icemlab status``
+        while ``icemlab run`` starts on a fresh store) make one of them fail with "table already exists".
+        """
+        import fcntl
+
+        database.parent.mkdir(parents=True, exist_ok=True)
+        with open(database.with_name(database.name + ".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                self.client.search_experiments(max_results=1)
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
 
     # ------------------------------------------------------------ sweeps
     def experiment_id(self, name: str, create: bool = True) -> str | None:

@@ -51,14 +51,32 @@ def test_mlflow_stack_uses_postgres_s3_and_proxied_artifacts():
     compose = load("mlflow/compose.yaml")
     services = compose["services"]
     assert {"postgres", "minio", "mlflow"} <= set(services)
-    command = services["mlflow"]["command"]
-    assert "--backend-store-uri postgresql://" in command
-    assert "--artifacts-destination s3://" in command and "--serve-artifacts" in command
+    start = (DEPLOY / "mlflow" / "start.sh").read_text()
+    assert services["mlflow"]["command"] == ["/opt/mlflow/start.sh"]
+    assert '--backend-store-uri "postgresql://' in start and "--app-name basic-auth" in start
+    assert "--artifacts-destination s3://" in start and "--serve-artifacts" in start
     assert services["mlflow"]["environment"]["MLFLOW_S3_ENDPOINT_URL"].startswith("http://minio:")
     assert services["mlflow"]["depends_on"]["postgres"]["condition"] == "service_healthy"
     assert "psycopg2" in (DEPLOY / "mlflow" / "Dockerfile").read_text()
     secrets = (DEPLOY / "mlflow" / ".env.example").read_text()
-    assert all(name in secrets for name in ("POSTGRES_PASSWORD", "MINIO_ROOT_USER", "MINIO_ROOT_PASSWORD"))
+    names = ("POSTGRES_PASSWORD", "MINIO_ROOT_USER", "MINIO_ROOT_PASSWORD", "MLFLOW_ADMIN_PASSWORD")
+    assert all(name in secrets for name in names)
+
+
+def test_secrets_stay_out_of_images_and_git_and_authentication_is_on():
+    """Ray's token and MLflow's passwords come from the environment; nothing in git or an image holds one."""
+    ignored = (DEPLOY.parent / ".gitignore").read_text()
+    assert "deploy/mlflow/.env" in ignored.splitlines()
+    for image in ("Dockerfile", "mlflow/Dockerfile"):
+        text = (DEPLOY / image).read_text()
+        assert "PASSWORD" not in text and "RAY_AUTH_TOKEN=" not in text and "COPY .env" not in text
+    cluster = load("cluster.yaml")
+    assert "--env RAY_AUTH_MODE=token" in cluster["docker"]["run_options"]
+    assert "--env RAY_AUTH_TOKEN" in [o.split("#")[0].strip() for o in cluster["docker"]["run_options"]]
+    assert all("--dashboard-host=127.0.0.1" in c for c in cluster["head_start_ray_commands"] if "--head" in c)
+    assert load("rayjob.yaml")["spec"]["rayClusterSpec"]["authOptions"] == {"mode": "token"}
+    compose = load("mlflow/compose.yaml")["services"]["mlflow"]["environment"]
+    assert compose["MLFLOW_ADMIN_PASSWORD"].startswith("${MLFLOW_ADMIN_PASSWORD:?")
 
 
 def test_deploy_readme_covers_every_file():

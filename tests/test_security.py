@@ -1,0 +1,138 @@
+"""What a local run opens to the network, and who may use it.
+
+A local `icemlab run` starts Ray, whose GCS, raylet and worker gRPC servers
+listen on every interface. Ray's token authentication (on by default, never
+switched off by icemlab) is what keeps a neighbour from running code through
+them. The test lists the listening sockets of a real run, checks that none of
+them answers an unauthenticated HTTP request, that a Ray client without the
+token is refused, and that the MLflow dashboard binds to 127.0.0.1 by default.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+from helpers import kill_group, start_cli, sweep_runs, wait_for, write_sweep
+
+from orchestrator.cli import build_parser
+from orchestrator.tracking import RUNNING, default_tracking_uri
+
+
+def process_tree(root: int) -> set[int]:
+    """``root`` and every process descending from it (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(parent, []).append(int(entry.name))
+    tree, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        tree.add(pid)
+        todo += children.get(pid, [])
+    return tree
+
+
+def listening_sockets(pids: set[int]) -> list[tuple[int, str, int]]:
+    """(pid, address, port) of every listening TCP socket the processes hold (from /proc)."""
+    inodes: dict[str, int] = {}
+    for pid in pids:
+        try:
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                target = os.readlink(fd)
+                if target.startswith("socket:["):
+                    inodes[target[8:-1]] = pid
+        except OSError:
+            continue
+    found = []
+    for table, width in (("/proc/net/tcp", 8), ("/proc/net/tcp6", 32)):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] != "0A" or fields[9] not in inodes:  # 0A: LISTEN
+                continue
+            address, port = fields[1].split(":")
+            raw = bytes.fromhex(address)
+            if width == 8:
+                host = socket.inet_ntop(socket.AF_INET, raw[::-1])
+            else:
+                words = b"".join(raw[i : i + 4][::-1] for i in range(0, 16, 4))
+                host = socket.inet_ntop(socket.AF_INET6, words)
+            found.append((inodes[fields[9]], host, int(port, 16)))
+    return found
+
+
+def answers_http_without_token(port: int, host: str) -> bool:
+    """True if an unauthenticated HTTP GET gets a 2xx answer."""
+    target = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    try:
+        with socket.create_connection((target, port), timeout=2) as connection:
+            connection.sendall(f"GET /api/version HTTP/1.0\r\nHost: {target}\r\n\r\n".encode())
+            reply = connection.recv(64)
+    except OSError:
+        return False
+    return reply.startswith(b"HTTP/") and reply.split()[1:2] and reply.split()[1].startswith(b"2")
+
+
+def test_a_local_run_exposes_nothing_without_the_token(tmp_path):
+    sweep = write_sweep(
+        tmp_path, "exposure", seeds=[0, 1, 2, 3], base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 60}
+    )
+    uri = default_tracking_uri(tmp_path)
+    # Even a user who switched Ray's authentication off gets it on for the local Ray icemlab starts.
+    driver = start_cli("run", str(sweep), "--quiet", cwd=tmp_path, env={"RAY_AUTH_MODE": "disabled"})
+    try:
+        wait_for(
+            lambda: driver.poll() is not None or any(c.status == RUNNING for c in sweep_runs(uri, "exposure")[1]),
+            180,
+            what="a trial",
+        )
+        assert driver.poll() is None, driver.stdout.read()
+        sockets = listening_sockets(process_tree(driver.pid))
+        commands = {pid: Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")[:200] for pid, _, _ in sockets}
+        gcs = [(host, port) for pid, host, port in sockets if b"gcs_server" in commands[pid]]
+        assert gcs, f"no GCS among the run's sockets: {sockets}"
+        exposed = [(host, port) for _, host, port in sockets if host not in ("127.0.0.1", "::1")]
+        assert not [p for h, p in exposed if answers_http_without_token(p, h)]  # nothing answers without the token
+
+        host, port = gcs[0]
+        address = f"{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port}"
+        probe = (
+            "import ray\n"
+            "try:\n"
+            f"    ray.init(address={address!r}, logging_level='ERROR')\n"
+            "    print('CONNECTED')\n"
+            "except Exception as error:\n"
+            "    print('REFUSED', type(error).__name__, error)\n"
+        )
+        home = tmp_path / "stranger"
+        home.mkdir()
+        environment = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+        for mode in ("disabled", "token"):  # a client that does not even try, and one without a token
+            result = subprocess.run(
+                [sys.executable, "-c", probe],
+                capture_output=True,
+                text=True,
+                timeout=120,
+                env=environment | {"HOME": str(home), "RAY_AUTH_MODE": mode},
+            )
+            assert "REFUSED" in result.stdout and "CONNECTED" not in result.stdout, result.stdout + result.stderr
+    finally:
+        kill_group(driver)
+
+
+def test_the_mlflow_dashboard_listens_on_localhost_by_default(monkeypatch):
+    arguments = build_parser().parse_args(["ui"])
+    assert arguments.host == "127.0.0.1"
+    calls = []
+    monkeypatch.setattr(subprocess, "call", lambda command, env: calls.append(command) or 0)
+    from orchestrator.cli import cmd_ui
+
+    assert cmd_ui(arguments) == 0
+    assert calls[0][calls[0].index("--host") + 1] == "127.0.0.1"
