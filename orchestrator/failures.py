@@ -24,6 +24,7 @@ CODE_ERROR = "code_error"
 LOST_PROCESS = "lost_process"
 BAD_CHECKPOINT = "bad_checkpoint"
 
+_NODE_MEMORY = re.compile(r"was ([\d.]+\s*[KMGT]?i?B) used / ([\d.]+\s*[KMGT]?i?B) limit")
 _MEMORY_WORDS = re.compile(r"out of memory|OOM|low on memory|memory usage|memory monitor", re.IGNORECASE)
 
 
@@ -82,6 +83,9 @@ def _lost_cause(error: BaseException, text: str, memory: bool, memory_mb: float 
     name = type(error).__name__
     if memory:
         used = f"; it was last seen using {memory_mb:,.0f} MB" if memory_mb else ""
+        node = _NODE_MEMORY.search(text)
+        if node:
+            used += f"; the node had {node[1]} of {node[2]} in use"
         return (
             f"{name}: a process was killed for memory{used}. Run fewer trials at once (--max-concurrent), "
             "give trials fewer threads (resources.threads_per_worker) or shrink the method's batch or buffer sizes"

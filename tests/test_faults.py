@@ -1,0 +1,138 @@
+"""Sustained faults (marker: slow): a random worker-side actor SIGKILLed every 15 s through a sweep.
+
+Four HalfCheetah trials (budget 50, two episodes of 300 steps, one remote
+simulation worker each, default retry settings) run once undisturbed and once
+while a killer thread SIGKILLs a random actor of the running trials (the
+ProgramRunner or a SimulationWorker) every 15 s. Every trial must finish
+exactly once with results identical to the undisturbed run, in at most twice
+its wall time. About ten minutes on two cores.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import threading
+import time
+
+import pytest
+import ray
+from helpers import sweep_runs, write_sweep
+
+from orchestrator.scheduler import SweepScheduler
+from orchestrator.sweep import load_sweep
+from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+
+pytestmark = pytest.mark.slow
+
+KILL_EVERY_SECONDS = 15.0
+
+
+def halfcheetah_sweep(directory):
+    return write_sweep(
+        directory,
+        "sustained",
+        task="halfcheetah_running",
+        base={"planner": {"budget": 50}, "episodes": 2, "max_steps": 300},
+        seeds=[0, 1, 2, 3],
+        resources={"simulation_workers": 2, "threads_per_worker": 1},
+    )
+
+
+class Killer(threading.Thread):
+    """SIGKILLs a random actor of the scheduler's running trials every ``period`` seconds."""
+
+    def __init__(self, scheduler: SweepScheduler, period: float, seed: int = 0):
+        super().__init__(daemon=True)
+        self.scheduler, self.period = scheduler, period
+        self.random = random.Random(seed)
+        self.stopped = threading.Event()
+        self.kills: list[tuple[float, str]] = []
+
+    def run(self) -> None:
+        started = time.monotonic()
+        while not self.stopped.wait(self.period):
+            running = [a for a in list(self.scheduler._active) if a.phase == "running"]
+            actors = [(name, actor) for a in running for name, actor in self._actors(a)]
+            if not actors:
+                continue
+            name, actor = self.random.choice(actors)
+            try:
+                pid = ray.get(actor.pid.remote(), timeout=10)
+                os.kill(pid, signal.SIGKILL)
+                self.kills.append((time.monotonic() - started, name))
+            except Exception:  # the actor died or finished meanwhile
+                continue
+
+    @staticmethod
+    def _actors(attempt):
+        yield "runner", attempt.group.runner
+        for role, workers in attempt.group.workers.items():
+            for worker in workers:
+                yield role, worker
+
+
+def run_sweep(directory, killer_period: float | None):
+    sweep = halfcheetah_sweep(directory)
+    tracker = Tracker(default_tracking_uri(directory))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    killer = Killer(scheduler, killer_period) if killer_period else None
+    started = time.monotonic()
+    if killer:
+        killer.start()
+    try:
+        outcome = scheduler.run()
+    finally:
+        if killer:
+            killer.stopped.set()
+    seconds = time.monotonic() - started
+    _, children = sweep_runs(tracker.uri, "sustained")
+    return outcome, children, seconds, killer, tracker
+
+
+def test_sustained_kills_cost_at_most_the_round_in_flight(tmp_path):
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        calm_dir, stormy_dir = tmp_path / "calm", tmp_path / "stormy"
+        calm_dir.mkdir()
+        stormy_dir.mkdir()
+        calm, calm_children, calm_seconds, _, _ = run_sweep(calm_dir, None)
+        stormy, children, seconds, killer, tracker = run_sweep(stormy_dir, KILL_EVERY_SECONDS)
+    finally:
+        ray.shutdown()
+    kinds = [name for _, name in killer.kills]
+    print(
+        f"\nfault-free {calm_seconds:.0f} s; with kills {seconds:.0f} s (x{seconds / calm_seconds:.2f}); "
+        f"{len(kinds)} kills: {kinds.count('runner')} runners, {kinds.count('simulation')} simulation workers"
+    )
+    assert (calm.finished, calm.failed) == (4, 0)
+    assert (stormy.finished, stormy.failed) == (4, 0)
+    assert len(children) == 4 and all(c.status == FINISHED for c in children)  # each trial finished exactly once
+    assert kinds.count("runner") >= 1 and kinds.count("simulation") >= 1
+    expected = {c.trial_key: c.metrics["mean_return"] for c in calm_children}
+    assert {c.trial_key: c.metrics["mean_return"] for c in children} == expected  # identical results
+    for child in children:
+        steps = [s for s, _ in tracker.metric_history(child.run_id, "step/reward")]
+        assert sorted(steps) == list(range(600))  # no metric step lost or logged twice
+        assert child.metrics.get("failures/code_error") is None  # kills never spend the code-error retries
+    assert seconds <= 2.0 * calm_seconds
+
+
+def test_a_memory_kill_is_a_lost_process_that_says_why(tmp_path):
+    """Ray's memory monitor kills the trial's workers (threshold forced down): recorded with its cause."""
+    from helpers import cli
+
+    sweep = write_sweep(
+        tmp_path, "memory", method="toy", algorithm=None, base={"rounds": 3, "steps": 10, "train_seconds": 2.0}
+    )
+    sweep.write_text(sweep.read_text() + "max_lost_processes: 1\n")
+    pressure = {"RAY_memory_usage_threshold": "0.01", "RAY_memory_monitor_refresh_ms": "100"}
+    result = cli("run", str(sweep), "--quiet", cwd=tmp_path, env=pressure)
+    assert result.returncode == 1
+    _, (child,) = sweep_runs(default_tracking_uri(tmp_path), "memory")
+    assert child.error_class == "lost_process" and child.attempts == 2  # one recovery, then the budget is spent
+    assert "killed for memory" in child.error and "--max-concurrent" in child.error
+    assert "the node had" in child.error and child.metrics["failures/lost_process"] == 1.0
+    status = cli("status", str(sweep), cwd=tmp_path)
+    assert "lost_process: OutOfMemoryError: a process was killed for memory" in status.stdout
