@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from orchestrator.report import PUBLISHED_SECONDS_PER_STEP
+from orchestrator.references import THESIS, find, load_references
 from workers.actors import ProgramRunner
 from workers.methods import METHODS, MpcSettings, TrialSpec
 from workers.mpc import MpcEpisode, PlanningState
@@ -63,6 +63,13 @@ def resimulate(evaluator: BatchEvaluator, batches: list[tuple[SimState, np.ndarr
         elapsed += time.perf_counter() - start
         steps += actions.shape[0] * actions.shape[1] * evaluator.task.frame_skip
     return steps, elapsed
+
+
+def table_2(task: str, budget: int, threads: int) -> float | None:
+    """The thesis's seconds per environment step (Table 2), from the published references."""
+    params = {"planner.algorithm": "icem", "planner.budget": str(budget), "threads": str(threads)}
+    reference = find(load_references(THESIS), task, "mpc", params, "seconds_per_step")
+    return None if reference is None else reference.value
 
 
 def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> dict[str, Any]:
@@ -126,8 +133,8 @@ def planner_figures(task_name: str, budget: int, steps: int, threads: int) -> di
         "ratio_quartiles": [float(q) for q in np.percentile(ratios, [25, 75])],
         "rollouts_only_ratio": float(np.median(scaling)),
         "planner_share_of_rollouts": float(np.median(np.asarray(ratios) / np.asarray(scaling))),
-        "thesis_seconds_per_step_1_thread": PUBLISHED_SECONDS_PER_STEP.get((task_name, 1, budget)),
-        "thesis_seconds_per_step_32_threads": PUBLISHED_SECONDS_PER_STEP.get((task_name, 32, budget)),
+        "thesis_seconds_per_step_1_thread": table_2(task_name, budget, 1),
+        "thesis_seconds_per_step_32_threads": table_2(task_name, budget, 32),
     }
 
 

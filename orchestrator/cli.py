@@ -259,11 +259,13 @@ def cmd_report(args) -> int:
         return 1
     runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
     if loaded is not None:
-        metric, mode = loaded.sweep.metric_name(), loaded.sweep.metric.mode
+        metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references
     else:
+        from orchestrator.references import THESIS, load_references
+
         method = runs[0].params.get("method", "mpc") if runs else "mpc"
-        metric, mode = next(iter(METHODS[method].metrics)), "max"
-    summary = report.summarize(runs, metric, mode)
+        metric, mode, references = next(iter(METHODS[method].metrics)), "max", load_references(THESIS)
+    summary = report.summarize(runs, metric, mode, references)
     print(report.format_table(summary))
     output = args.output or Path("reports") / name
     program = METHODS[summary.groups[0].method] if summary.groups else None

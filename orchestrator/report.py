@@ -23,50 +23,14 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from orchestrator import statistics  # noqa: E402
+from orchestrator.references import Reference, find  # noqa: E402
 from orchestrator.tracking import TAG_VARIANT, TrialRun  # noqa: E402
 from workers.methods import METHODS  # noqa: E402
 
 OVERRIDE_PREFIX = "icemlab.override."
-
-# Table 3 (ground-truth models; 50 runs, Fetch 100): (task, algorithm, budget) -> (value, +-).
-# Returns for HalfCheetah and Humanoid, success rates for the rest (no spread given).
-PUBLISHED: dict[tuple[str, str, int], tuple[float, float | None]] = {
-    ("halfcheetah_running", "icem", 100): (5236, 167), ("halfcheetah_running", "cem_mpc", 100): (699, 120),
-    ("halfcheetah_running", "icem", 300): (7633, 250), ("halfcheetah_running", "cem_mpc", 300): (3682, 119),
-    ("halfcheetah_running", "icem", 500): (8756, 255), ("halfcheetah_running", "cem_mpc", 500): (5059, 179),
-    ("humanoid_standup", "icem", 100): (368e3, 12e3), ("humanoid_standup", "cem_mpc", 100): (155e3, 488),
-    ("humanoid_standup", "icem", 300): (411e3, 5e3), ("humanoid_standup", "cem_mpc", 300): (163e3, 495),
-    ("humanoid_standup", "icem", 500): (416e3, 1.8e3), ("humanoid_standup", "cem_mpc", 500): (164e3, 158),
-    ("fetch_pick_place_sparse", "icem", 100): (0.81, None), ("fetch_pick_place_sparse", "cem_mpc", 100): (0.29, None),
-    ("fetch_pick_place_sparse", "icem", 300): (0.95, None), ("fetch_pick_place_sparse", "cem_mpc", 300): (0.64, None),
-    ("fetch_pick_place_sparse", "icem", 500): (0.96, None), ("fetch_pick_place_sparse", "cem_mpc", 500): (0.75, None),
-    ("door", "icem", 100): (1.0, None), ("door", "cem_mpc", 100): (1.0, None),
-    ("door", "icem", 300): (1.0, None), ("door", "cem_mpc", 300): (1.0, None),
-    ("door", "icem", 500): (1.0, None), ("door", "cem_mpc", 500): (1.0, None),
-    ("door_sparse", "icem", 100): (0.96, None), ("door_sparse", "cem_mpc", 100): (0.0, None),
-    ("door_sparse", "icem", 300): (0.96, None), ("door_sparse", "cem_mpc", 300): (0.0, None),
-    ("door_sparse", "icem", 500): (0.98, None), ("door_sparse", "cem_mpc", 500): (0.0, None),
-    ("relocate", "icem", 100): (0.9, None), ("relocate", "cem_mpc", 100): (0.0, None),
-    ("relocate", "icem", 300): (1.0, None), ("relocate", "cem_mpc", 300): (0.22, None),
-    ("relocate", "icem", 500): (1.0, None), ("relocate", "cem_mpc", 500): (0.62, None),
-}  # fmt: skip
-SUCCESS_TASKS = {"fetch_pick_place_sparse", "door", "door_sparse", "relocate"}
-
-# Table 2: seconds per environment step of iCEM with MuJoCo (Xeon Gold 6154), by (task, threads, budget).
-PUBLISHED_SECONDS_PER_STEP: dict[tuple[str, int, int], float] = {
-    ("halfcheetah_running", 1, 100): 0.326, ("halfcheetah_running", 1, 300): 0.884,
-    ("halfcheetah_running", 1, 500): 1.520, ("halfcheetah_running", 1, 2000): 5.851,
-    ("halfcheetah_running", 32, 100): 0.027, ("halfcheetah_running", 32, 300): 0.066,
-    ("halfcheetah_running", 32, 500): 0.109, ("halfcheetah_running", 32, 2000): 0.399,
-    ("humanoid_standup", 1, 100): 2.745, ("humanoid_standup", 1, 300): 8.811,
-    ("humanoid_standup", 1, 500): 13.259, ("humanoid_standup", 1, 2000): 47.469,
-    ("humanoid_standup", 32, 100): 0.163, ("humanoid_standup", 32, 300): 0.456,
-    ("humanoid_standup", 32, 500): 0.719, ("humanoid_standup", 32, 2000): 2.79,
-    ("fetch_pick_place_sparse", 1, 100): 8.391, ("fetch_pick_place_sparse", 1, 300): 26.988,
-    ("fetch_pick_place_sparse", 1, 500): 40.630, ("fetch_pick_place_sparse", 1, 2000): 166.223,
-    ("fetch_pick_place_sparse", 32, 100): 0.368, ("fetch_pick_place_sparse", 32, 300): 1.068,
-    ("fetch_pick_place_sparse", 32, 500): 1.573, ("fetch_pick_place_sparse", 32, 2000): 6.010,
-}  # fmt: skip
+RATE_METRICS = {"success"}
+"""Metrics that are rates of per-episode successes: intervals and tests treat them as binomial."""
 
 
 class TrialResult(NamedTuple):
@@ -111,7 +75,7 @@ def result_from_run(run: TrialRun) -> TrialResult:
 
 
 class Group(NamedTuple):
-    """The trials of one configuration (all its seeds)."""
+    """The trials of one configuration (all its seeds) and what they say about the sweep's metric."""
 
     task: str
     method: str
@@ -121,15 +85,27 @@ class Group(NamedTuple):
     """Swept values that define the configuration, beyond the labels."""
     trials: list[TrialResult]
     mean: float
-    """Mean of the sweep's metric over the trials."""
+    """Mean of the sweep's metric over the trials (the success rate over all episodes, for rates)."""
     sem: float
-    """Standard error of that mean (0 with one trial)."""
-    published: tuple[float, float | None] | None
-    """The thesis's figure for this configuration, if it has one."""
+    """Standard error of that mean over trials (0 with one trial)."""
+    interval: statistics.Interval
+    """95% interval of the mean: bootstrap for returns, Wilson for success rates."""
+    iqm: statistics.Interval | None
+    """Interquartile mean over trials with its bootstrap interval (five trials or more)."""
+    successes: tuple[int, int] | None
+    """(successes, episodes) for rate metrics."""
+    reference: Reference | None
+    """The published figure for this configuration, if there is one."""
+    comparison: statistics.Comparison | None
+    """The test of the result against the reference."""
 
     @property
     def n(self) -> int:
         return len(self.trials)
+
+    @property
+    def published(self) -> tuple[float, float | None] | None:
+        return None if self.reference is None else (self.reference.value, self.reference.spread)
 
     def value(self, key: str) -> float | None:
         values = [t.values[key] for t in self.trials if key in t.values]
@@ -155,22 +131,35 @@ class Summary(NamedTuple):
     """Index of the best group by the metric and mode."""
 
 
-def _published(task: str, method: str, params: dict[str, str], metric: str) -> tuple[float, float | None] | None:
-    if method != "mpc" or params.get("max_steps", "None") != "None":
-        return None  # Table 3 is for full-length MPC episodes
-    budget = params.get("planner.budget", "None")
-    if budget == "None":
-        return None
-    entry = PUBLISHED.get((task, params.get("planner.algorithm", "?"), int(budget)))
-    if entry is None:
-        return None
-    # Table 3 gives success rates for success tasks and returns for the others.
-    is_success = task in SUCCESS_TASKS
-    return entry if (metric == "success") == is_success else None
+def _episodes(trial: TrialResult) -> int:
+    return int(float(trial.params.get("episodes", "1") or 1))
 
 
-def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max") -> Summary:
-    """Group finished trial runs by configuration and summarise the sweep's metric per group."""
+def _group(task, method, labels, variant, setting, members, metric, summary_key, references) -> Group:
+    values = np.array([m.values.get(summary_key, math.nan) for m in members], dtype=float)
+    values = values[np.isfinite(values)]
+    sem = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else 0.0
+    reference = find(references, task, method, members[0].params, metric)
+    successes = None
+    if metric in RATE_METRICS and len(values):
+        episodes = [_episodes(m) for m in members if math.isfinite(m.values.get(summary_key, math.nan))]
+        successes = (int(round(sum(v * e for v, e in zip(values, episodes)))), int(sum(episodes)))
+        interval = statistics.rate_interval(*successes)
+        mean = interval.estimate
+        comparison = statistics.compare_rate(*successes, reference.value) if reference else None
+    else:
+        interval = statistics.mean_interval(values)
+        mean = interval.estimate
+        comparison = None
+        if reference is not None and len(values):
+            comparison = statistics.compare_mean(values, reference.value, reference.spread, reference.spread_kind,
+                                                 reference.runs)  # fmt: skip
+    return Group(task, method, dict(labels), variant or None, setting, members, mean, sem, interval,
+                 statistics.iqm_interval(values), successes, reference, comparison)  # fmt: skip
+
+
+def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max", references: list[Reference] = ()) -> Summary:
+    """Group finished trial runs by configuration, summarise the sweep's metric, test it against the references."""
     results = [result_from_run(run) for run in runs]
     method = results[0].method if results else "mpc"
     program = METHODS.get(method)
@@ -179,26 +168,13 @@ def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max") -> Summa
     grouped: dict[tuple, list[TrialResult]] = defaultdict(list)
     for result in results:
         setting = {k: v for k, v in result.overrides.items() if k not in covered}
-        key = (
-            result.task,
-            result.method,
-            tuple(result.labels.items()),
-            result.variant or "",
-            json.dumps(setting, sort_keys=True),
-        )
+        key = (result.task, result.method, tuple(result.labels.items()), result.variant or "",
+               json.dumps(setting, sort_keys=True))  # fmt: skip
         grouped[key].append(result)
-    groups = []
-    for (task, method_name, labels, variant, setting), members in grouped.items():
-        values = np.array([m.values.get(summary_key, math.nan) for m in members], dtype=float)
-        values = values[np.isfinite(values)]
-        mean = float(values.mean()) if len(values) else math.nan
-        sem = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else 0.0
-        groups.append(
-            Group(
-                task, method_name, dict(labels), variant or None, json.loads(setting), members, mean, sem,
-                _published(task, method_name, members[0].params, metric),
-            )
-        )  # fmt: skip
+    groups = [
+        _group(task, method_name, labels, variant, json.loads(setting), members, metric, summary_key, list(references))
+        for (task, method_name, labels, variant, setting), members in grouped.items()
+    ]
     groups.sort(key=lambda g: (g.task, _sort_labels(g.labels), g.variant or "", json.dumps(g.setting, sort_keys=True)))
     finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean)]
     best = None
@@ -212,40 +188,72 @@ def _sort_labels(labels: dict[str, str]) -> tuple:
     return tuple((k, int(v)) if v.isdigit() else (k, 0, v) for k, v in labels.items())
 
 
-def _published_text(group: Group, metric: str) -> str:
-    if group.published is None:
+def _number(value: float, metric: str) -> str:
+    if not math.isfinite(value):
         return "-"
-    value, spread = group.published
-    if metric == "success":
+    if metric in RATE_METRICS:
         return f"{value:.2f}"
-    return f"{value:.0f} +- {spread:.0f}" if spread is not None else f"{value:.0f}"
+    return f"{value:.4g}" if abs(value) < 10 else f"{value:.1f}"
 
 
-def _figure_text(value: float, metric: str) -> str:
-    return f"{value:.2f}" if metric == "success" else f"{value:.1f}"
+def _published_text(group: Group, metric: str) -> str:
+    if group.reference is None:
+        return "-"
+    r = group.reference
+    text = _number(r.value, metric)
+    if r.spread is not None:
+        text += f" +- {_number(r.spread, metric)}"
+    return text
+
+
+def _comparison_text(group: Group) -> str:
+    c = group.comparison
+    if c is None:
+        return "-"
+    if not math.isfinite(c.p_value):
+        return c.test
+    text = f"{c.verdict} ({c.test}, p={c.p_value:.2g})"
+    if c.runs_needed:
+        text += f"; ~{c.runs_needed} {'episodes' if group.successes else 'runs'} to settle"
+    return text
+
+
+def _estimate_text(group: Group, metric: str) -> str:
+    low, high = group.interval.low, group.interval.high
+    text = _number(group.mean, metric)
+    if group.successes:
+        text += f" ({group.successes[0]}/{group.successes[1]})"
+    if math.isfinite(low):
+        text += f" [{_number(low, metric)}, {_number(high, metric)}]"
+    return text
 
 
 def format_table(summary: Summary) -> str:
-    """A plain-text table, one line per configuration, best marked, with the thesis's figure."""
+    """A plain-text table, one line per configuration: estimate with 95% interval, IQM, the thesis, the test."""
     metric = summary.metric
-    header = ("task", "configuration", "n", f"{metric} (mean +- sem)", "s/step", "thesis")
+    header = ("task", "configuration", "n", f"{metric} [95% CI]", "IQM", "s/step", "published", "vs published")
     rows = [header]
     for index, g in enumerate(summary.groups):
         seconds = g.value("mean_planning_seconds_per_step")
-        figure = f"{_figure_text(g.mean, metric)} +- {_figure_text(g.sem, metric)}"
+        estimate = _estimate_text(g, metric)
         if index == summary.best and len(summary.groups) > 1:
-            figure += " *"
+            estimate += " *"
+        iqm = "-" if g.iqm is None else _number(g.iqm.estimate, metric)
         rows.append((
-            g.task, g.name(), str(g.n), figure,
+            g.task, g.name(), str(g.n), estimate, iqm,
             "-" if seconds is None else f"{seconds:.3f}",
-            _published_text(g, metric),
+            _published_text(g, metric), _comparison_text(g),
         ))  # fmt: skip
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
+    notes = []
     if summary.best is not None and len(summary.groups) > 1:
-        lines.append(f"* best by {metric} ({summary.mode})")
-    return "\n".join(lines)
+        notes.append(f"* best by {metric} ({summary.mode})")
+    sources = sorted({g.reference.source for g in summary.groups if g.reference})
+    if sources:
+        notes.append("published: " + "; ".join(sources) + "; tests one-sided in the direction of the difference, 5%")
+    return "\n".join(lines + notes)
 
 
 def to_csv(summary: Summary) -> str:
@@ -256,26 +264,45 @@ def to_csv(summary: Summary) -> str:
     writer = csv.writer(buffer, lineterminator="\n")
     label_keys = sorted({k for g in summary.groups for k in g.labels})
     setting_keys = sorted({k for g in summary.groups for k in g.setting})
+    m = summary.metric
     writer.writerow(
-        ["task", "method", *label_keys, "variant", *setting_keys, "trials", f"{summary.metric}_mean",
-         f"{summary.metric}_sem", "seconds_per_step", "published", "published_spread", "best"]
+        ["task", "method", *label_keys, "variant", *setting_keys, "trials", f"{m}_mean", f"{m}_sem",
+         f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes", "episodes",
+         "seconds_per_step", "published", "published_spread", "published_runs", "published_source", "verdict",
+         "test", "p_value", "runs_to_settle", "best"]
     )  # fmt: skip
+
+    def cell(value) -> str:
+        return "" if value is None or (isinstance(value, float) and not math.isfinite(value)) else f"{value:.6g}"
+
     for index, g in enumerate(summary.groups):
-        seconds = g.value("mean_planning_seconds_per_step")
-        published, spread = g.published if g.published else ("", "")
+        r, c = g.reference, g.comparison
         writer.writerow(
             [g.task, g.method, *[g.labels.get(k, "") for k in label_keys], g.variant or "",
-             *[g.setting.get(k, "") for k in setting_keys], g.n, f"{g.mean:.6g}", f"{g.sem:.6g}",
-             "" if seconds is None else f"{seconds:.5f}", published, "" if spread is None else spread,
-             int(index == summary.best)]
+             *[g.setting.get(k, "") for k in setting_keys], g.n, cell(g.mean), cell(g.sem),
+             cell(g.interval.low), cell(g.interval.high),
+             cell(g.iqm.estimate if g.iqm else None), cell(g.iqm.low if g.iqm else None),
+             cell(g.iqm.high if g.iqm else None),
+             g.successes[0] if g.successes else "", g.successes[1] if g.successes else "",
+             cell(g.value("mean_planning_seconds_per_step")),
+             cell(r.value if r else None), cell(r.spread if r else None), r.runs if r and r.runs else "",
+             r.source if r else "", c.verdict if c else "", c.test if c else "", cell(c.p_value if c else None),
+             c.runs_needed if c and c.runs_needed else "", int(index == summary.best)]
         )  # fmt: skip
     return buffer.getvalue()
+
+
+def _error_bars(groups: list[Group]) -> np.ndarray:
+    """(2, n) distances from each mean to its 95% interval (0 where there is none)."""
+    low = np.array([g.mean - g.interval.low if math.isfinite(g.interval.low) else 0.0 for g in groups])
+    high = np.array([g.interval.high - g.mean if math.isfinite(g.interval.high) else 0.0 for g in groups])
+    return np.vstack([low, high])
 
 
 def budget_figure(summary: Summary):
     """Metric against budget, one line per algorithm and variant (the style of the thesis's Fig. 5).
 
-    Filled markers with error bars are this sweep; hollow markers are Table 3.
+    Filled markers with 95% intervals are this sweep; hollow squares are the published figures.
     """
     groups = [g for g in summary.groups if g.labels.get("budget", "None").isdigit()]
     tasks = sorted({g.task for g in groups})
@@ -291,7 +318,7 @@ def budget_figure(summary: Summary):
         for name, members in sorted(lines.items()):
             members.sort(key=lambda g: int(g.labels["budget"]))
             budgets = [int(g.labels["budget"]) for g in members]
-            line = axis.errorbar(budgets, [g.mean for g in members], yerr=[g.sem for g in members],
+            line = axis.errorbar(budgets, [g.mean for g in members], yerr=_error_bars(members),
                                  marker="o", capsize=3, label=name)  # fmt: skip
             published = [(int(g.labels["budget"]), g.published[0]) for g in members if g.published]
             if published:
@@ -318,11 +345,16 @@ def variant_figure(summary: Summary):
         members = [g for g in summary.groups if g.task == task]
         names = [g.name() for g in members]
         positions = np.arange(len(members))
-        axis.barh(positions, [g.mean for g in members], xerr=[g.sem for g in members], capsize=3, color="tab:blue")
+        axis.barh(positions, [g.mean for g in members], xerr=_error_bars(members), capsize=3, color="tab:blue")
+        marks = [(g.reference.value, i) for i, g in enumerate(members) if g.reference]
+        if marks:
+            axis.plot(*zip(*marks), linestyle="none", marker="s", markerfacecolor="none", color="black",
+                      label="published")  # fmt: skip
+            axis.legend(fontsize=8)
         axis.set_yticks(positions, names)
         axis.invert_yaxis()
         axis.set_xlabel(summary.metric.replace("_", " "))
-        axis.set_title(f"{task}: variants (mean +- sem over seeds)")
+        axis.set_title(f"{task}: variants (mean, 95% interval over seeds)")
         axis.grid(alpha=0.3, axis="x")
     figure.tight_layout()
     return figure

@@ -36,6 +36,7 @@ from pydantic import (
     model_validator,
 )
 
+from orchestrator.references import THESIS, Reference, load_references
 from workers.methods import BUILTIN_METHODS, DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
 from workers.planning.config import Algorithm
 from workers.tasks import TASKS, make_task, unknown_task_message
@@ -180,6 +181,8 @@ class Sweep(_UserModel):
     """Refuse sweeps that expand to more trials than this (guards against runaway grids)."""
     tracking: Tracking = Tracking()
     """MLflow experiment and tags."""
+    reference: str | None = None
+    """Published figures to compare with: a YAML file, relative to the sweep file (default: the thesis's)."""
 
     @field_validator("task")
     @classmethod
@@ -319,6 +322,8 @@ class LoadedSweep(NamedTuple):
     path: Path
     file_hash: str
     """sha256 of the YAML text (first 16 hex digits)."""
+    references: list[Reference]
+    """The published figures the sweep's results are compared with."""
 
 
 # ---------------------------------------------------------- dotted paths
@@ -389,7 +394,7 @@ def parameter_path_problem(path: str, method: str) -> str | None:
 
 
 # ------------------------------------------------------------ locations
-def _node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int:
+def node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int:
     """1-based line of the deepest node along ``loc`` that exists in the YAML."""
     node, line = root, (root.start_mark.line + 1 if root is not None else 1)
     for part in loc:
@@ -428,7 +433,7 @@ def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str
 _UNION_MEMBERS = {"GridParameter", "RandomParameter", "SeedRange", "list[int]", "[key]"}
 
 
-def _problems_from(error: ValidationError, file: str, root, model: type[BaseModel], prefix=()) -> list[SweepProblem]:
+def problems_from(error: ValidationError, file: str, root, model: type[BaseModel], prefix=()) -> list[SweepProblem]:
     problems = []
     for item in error.errors():
         # Pydantic names union members in the location; they are not YAML keys.
@@ -440,7 +445,7 @@ def _problems_from(error: ValidationError, file: str, root, model: type[BaseMode
             message = "required key is missing"
         loc = tuple(prefix) + loc
         path = ".".join(str(p) for p in loc) or "(file)"
-        problems.append(SweepProblem(file, _node_line(root, loc), path, message))
+        problems.append(SweepProblem(file, node_line(root, loc), path, message))
     return problems
 
 
@@ -449,7 +454,7 @@ def _sorted(problems: list[SweepProblem]) -> list[SweepProblem]:
 
 
 # --------------------------------------------------------------- loading
-def _read_yaml(path: Path) -> tuple[str, Any, yaml.Node | None]:
+def read_yaml(path: Path) -> tuple[str, Any, yaml.Node | None]:
     file = str(path)
     try:
         size = path.stat().st_size
@@ -490,7 +495,7 @@ def load_sweep(path: str | Path) -> LoadedSweep:
     """Read, validate and expand a sweep file; raise :class:`SweepError` on any problem."""
     path = Path(path)
     file = str(path)
-    text, data, root = _read_yaml(path)
+    text, data, root = read_yaml(path)
     if data is None:
         raise SweepError([SweepProblem(file, 1, "(file)", "empty sweep file; see sweeps/quickstart.yaml")])
     if not isinstance(data, dict):
@@ -498,15 +503,27 @@ def load_sweep(path: str | Path) -> LoadedSweep:
     try:
         sweep = Sweep.model_validate(data)
     except ValidationError as error:
-        problems = _problems_from(error, file, root, Sweep)
+        problems = problems_from(error, file, root, Sweep)
         problems += _method_problems(data, file, root) if "base" not in {p.path.split(".")[0] for p in problems} else []
         raise SweepError(_sorted(problems)) from None
     problems = _method_problems(data, file, root)
     if problems:
         raise SweepError(_sorted(problems))
+    references = _references(sweep, path, root)
     trials = expand(sweep, file, root)
     file_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
-    return LoadedSweep(sweep, trials, text, path, file_hash)
+    return LoadedSweep(sweep, trials, text, path, file_hash, references)
+
+
+def _references(sweep: Sweep, path: Path, root) -> list[Reference]:
+    """The sweep's reference file, read and validated; problems located in the sweep or in the file."""
+    if sweep.reference is None:
+        return load_references(THESIS)
+    reference = (path.parent / sweep.reference).resolve()
+    if not reference.is_file():
+        line = node_line(root, ("reference",))
+        raise SweepError([SweepProblem(str(path), line, "reference", f"reference file {reference} not found")])
+    return load_references(reference)
 
 
 def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem]:
@@ -521,21 +538,21 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
         try:
             program.Settings.model_validate(base)
         except ValidationError as error:
-            problems += _problems_from(error, file, root, program.Settings, prefix=("base",))
+            problems += problems_from(error, file, root, program.Settings, prefix=("base",))
         if method == "mpc" and isinstance(base.get("planner"), dict) and "algorithm" in base["planner"]:
-            line = _node_line(root, ("base", "planner", "algorithm"))
+            line = node_line(root, ("base", "planner", "algorithm"))
             problems.append(
                 SweepProblem(file, line, "base.planner.algorithm", "set the algorithm once, at the top level")
             )
     if data.get("algorithm") is not None and method != "mpc":
-        problems.append(SweepProblem(file, _node_line(root, ("algorithm",)), "algorithm", (
+        problems.append(SweepProblem(file, node_line(root, ("algorithm",)), "algorithm", (
             f"'algorithm' applies to method mpc; for {method} set base.planner.algorithm"
         )))  # fmt: skip
     parameters = data.get("parameters") or {}
     for path in parameters if isinstance(parameters, dict) else []:
         problem = parameter_path_problem(str(path), method)
         if problem:
-            problems.append(SweepProblem(file, _node_line(root, ("parameters", path)), f"parameters.{path}", problem))
+            problems.append(SweepProblem(file, node_line(root, ("parameters", path)), f"parameters.{path}", problem))
     variants = data.get("variants") or []
     for index, variant in enumerate(variants if isinstance(variants, list) else []):
         if not isinstance(variant, dict):
@@ -543,9 +560,9 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
         for key in variant:
             problem = None if key == "name" else parameter_path_problem(str(key), method)
             if problem:
-                problems.append(SweepProblem(file, _node_line(root, ("variants", index, key)), str(key), problem))
+                problems.append(SweepProblem(file, node_line(root, ("variants", index, key)), str(key), problem))
             elif key in parameters:
-                problems.append(SweepProblem(file, _node_line(root, ("variants", index, key)), str(key), (
+                problems.append(SweepProblem(file, node_line(root, ("variants", index, key)), str(key), (
                     f"set both by variant {variant.get('name')!r} and by parameters"
                 )))  # fmt: skip
     roles = (data.get("resources") or {}).get("workers") or {}
@@ -554,11 +571,11 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
             known = ", ".join(program.role_names) or "none"
             hint = _closest_hint(str(role), program.role_names)
             message = f"method {method} has no role {role!r}{hint}; its roles: {known}"
-            line = _node_line(root, ("resources", "workers", role))
+            line = node_line(root, ("resources", "workers", role))
             problems.append(SweepProblem(file, line, f"resources.workers.{role}", message))
     metric = (data.get("metric") or {}).get("name")
     if metric is not None and metric not in program.metrics:
-        problems.append(SweepProblem(file, _node_line(root, ("metric", "name")), "metric.name", (
+        problems.append(SweepProblem(file, node_line(root, ("metric", "name")), "metric.name", (
             f"method {method} reports no metric {metric!r}{_closest_hint(str(metric), program.metrics)}; "
             f"its metrics: {', '.join(program.metrics)}"
         )))  # fmt: skip
@@ -596,7 +613,7 @@ def expand(sweep: Sweep, file: str = "<sweep>", root: yaml.Node | None = None) -
     count = len(variants) * grid_points * samples * sweep.seed_count()
     if count > sweep.max_trials:
         where = ("seeds",) if sweep.seed_count() > sweep.max_trials else ("parameters",)
-        line = _node_line(root, where)
+        line = node_line(root, where)
         message = (
             f"the sweep expands to {count:,} trials, above max_trials = {sweep.max_trials}; "
             "shrink the grid or the seeds, or raise max_trials"
@@ -651,8 +668,8 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
         for parameter, location in sources.items():
             target = "planner.algorithm" if parameter == "algorithm" else parameter
             if path == target or path.startswith(target + "."):
-                return _node_line(root, location)
-        return _node_line(root, ("base", *path.split(".")))
+                return node_line(root, location)
+        return node_line(root, ("base", *path.split(".")))
 
     task = config["task"]
     if task not in TASKS:

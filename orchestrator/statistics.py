@@ -1,0 +1,163 @@
+"""How sure a result is, and whether it differs from a published one.
+
+scipy.stats does the estimation and the tests, statsmodels the power
+analysis; nothing here re-derives a distribution.
+
+* Intervals (95%): for returns a bootstrap of the runs' mean (BCa); for
+  success rates the Wilson score interval of the successes; for five runs or
+  more also the interquartile mean (IQM, the mean of the middle 50% of runs,
+  as rliable defines it) with a bootstrap interval. rliable itself does not
+  import beside this stack (its ``arch`` dependency fails with pandas 3), and
+  with one task per configuration its stratified bootstrap is the plain
+  bootstrap of runs used here.
+* Verdicts against a reference: an exact binomial test of the measured
+  successes against a published success rate; for returns Welch's t-test
+  against the published mean, spread and run count (a one-sample t-test when
+  the reference gives no spread). Tests are one-sided in the direction of the
+  observed difference, at the 5% level: ``below`` or ``above`` when the
+  difference is significant, ``consistent`` when it is not.
+* Runs to settle: for a comparison that is not significant, how many runs
+  (episodes, for rates) a one-sided test at 5% needs to detect the observed
+  difference with 80% power.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from scipy import stats
+
+LEVEL = 0.95
+ALPHA = 0.05
+POWER = 0.80
+IQM_MIN_RUNS = 5
+BOOTSTRAP_RESAMPLES = 2000
+
+
+class Interval(NamedTuple):
+    """A point estimate with its 95% interval (nan bounds when there is too little data)."""
+
+    estimate: float
+    low: float
+    high: float
+
+
+class Comparison(NamedTuple):
+    """A measured figure against a published one."""
+
+    verdict: str
+    """consistent, below or above."""
+    test: str
+    """The test that decided it."""
+    p_value: float
+    """One-sided, in the direction of the observed difference."""
+    runs_needed: int | None
+    """Runs (episodes for rates) that would detect the observed difference at 5% with 80% power; None once
+    the difference is significant or when there is none."""
+
+
+MIN_BOOTSTRAP_RUNS = 3
+"""Below this many runs a bootstrap interval says nothing; none is given."""
+
+
+def mean_interval(values: np.ndarray) -> Interval:
+    """The runs' mean with a 95% bootstrap (BCa) interval, from three runs on."""
+    values = np.asarray(values, dtype=float)
+    if len(values) == 0:
+        return Interval(math.nan, math.nan, math.nan)
+    if len(values) < MIN_BOOTSTRAP_RUNS or np.ptp(values) == 0:
+        return Interval(float(values.mean()), math.nan, math.nan)
+    result = stats.bootstrap((values,), np.mean, confidence_level=LEVEL, n_resamples=BOOTSTRAP_RESAMPLES,
+                             random_state=0)  # fmt: skip
+    return Interval(float(values.mean()), float(result.confidence_interval.low), float(result.confidence_interval.high))
+
+
+def iqm(values: np.ndarray) -> float:
+    """Interquartile mean: the mean of the middle 50% of the values."""
+    return float(stats.trim_mean(values, 0.25))
+
+
+def iqm_interval(values: np.ndarray) -> Interval | None:
+    """IQM with a bootstrap interval, from five runs on (None with fewer)."""
+    values = np.asarray(values, dtype=float)
+    if len(values) < IQM_MIN_RUNS:
+        return None
+    if np.ptp(values) == 0:
+        return Interval(iqm(values), math.nan, math.nan)
+    result = stats.bootstrap((values,), lambda x, axis=-1: stats.trim_mean(x, 0.25, axis=axis),
+                             confidence_level=LEVEL, n_resamples=BOOTSTRAP_RESAMPLES, method="percentile",
+                             random_state=0)  # fmt: skip
+    return Interval(iqm(values), float(result.confidence_interval.low), float(result.confidence_interval.high))
+
+
+def rate_interval(successes: int, trials: int) -> Interval:
+    """Success rate with its Wilson score interval."""
+    if trials == 0:
+        return Interval(math.nan, math.nan, math.nan)
+    interval = stats.binomtest(successes, trials).proportion_ci(confidence_level=LEVEL, method="wilson")
+    return Interval(successes / trials, float(interval.low), float(interval.high))
+
+
+def _verdict(p_value: float, below: bool) -> str:
+    if p_value >= ALPHA:
+        return "consistent"
+    return "below" if below else "above"
+
+
+def compare_rate(successes: int, trials: int, published: float) -> Comparison:
+    """Exact binomial test of ``successes`` out of ``trials`` against a published success rate."""
+    observed = successes / trials
+    below = observed < published
+    alternative = "less" if below else "greater"
+    p_value = float(stats.binomtest(successes, trials, published, alternative=alternative).pvalue)
+    verdict = _verdict(p_value, below)
+    needed = None
+    if verdict == "consistent" and observed != published:
+        needed = _episodes_to_detect(observed, published)
+    return Comparison(verdict, "exact binomial", p_value, needed)
+
+
+def _episodes_to_detect(observed: float, published: float) -> int | None:
+    """One-sample test of a proportion (Cohen's h, normal approximation) at 5%, one-sided, 80% power."""
+    from statsmodels.stats.power import NormalIndPower
+    from statsmodels.stats.proportion import proportion_effectsize
+
+    effect = abs(proportion_effectsize(observed, published))
+    if effect == 0:
+        return None
+    n = NormalIndPower().solve_power(effect_size=effect, alpha=ALPHA, power=POWER, ratio=0, alternative="larger")
+    return int(math.ceil(n))
+
+
+def compare_mean(values: np.ndarray, published: float, spread: float | None, spread_kind: str | None,
+                 runs: int | None) -> Comparison:  # fmt: skip
+    """Welch's t-test of the runs' values against a published mean (one-sample t-test without a spread)."""
+    values = np.asarray(values, dtype=float)
+    n = len(values)
+    if n < 2 or np.std(values, ddof=1) == 0 and spread is None:
+        return Comparison("consistent", "too few runs to test", math.nan, None)
+    mean, std = float(values.mean()), float(np.std(values, ddof=1))
+    below = mean < published
+    alternative = "less" if below else "greater"
+    if spread is not None and runs:
+        published_std = spread * math.sqrt(runs) if spread_kind == "sem" else spread
+        result = stats.ttest_ind_from_stats(mean, std, n, published, published_std, runs, equal_var=False,
+                                            alternative=alternative)  # fmt: skip
+        test = "Welch t-test"
+        scale = math.sqrt((std**2 + published_std**2) / 2) or 1.0
+    else:
+        result = stats.ttest_1samp(values, published, alternative=alternative)
+        test = "one-sample t-test"
+        scale = std or 1.0
+    p_value = float(result.pvalue)
+    verdict = _verdict(p_value, below)
+    needed = None
+    if verdict == "consistent" and mean != published:
+        from statsmodels.stats.power import TTestPower
+
+        effect = abs(mean - published) / scale
+        needed = int(math.ceil(TTestPower().solve_power(effect_size=effect, alpha=ALPHA, power=POWER,
+                                                        alternative="larger")))  # fmt: skip
+    return Comparison(verdict, test, p_value, needed)

@@ -1,0 +1,150 @@
+"""Reports: published references as data, intervals, verdicts and runs-to-settle, the files they write."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+import numpy as np
+import pytest
+from helpers import cli
+
+from orchestrator import report, statistics
+from orchestrator.references import THESIS, Reference, find, load_references
+from orchestrator.sweep import SweepError, load_sweep
+from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+
+
+def test_worked_example_18_of_20_against_096_is_consistent():
+    comparison = statistics.compare_rate(18, 20, 0.96)
+    assert comparison.verdict == "consistent" and comparison.test == "exact binomial"
+    assert comparison.p_value == pytest.approx(0.19, abs=0.005)  # one-sided exact binomial
+    # Telling 0.90 from 0.96 at 5% with 80% power takes on the order of a hundred episodes.
+    assert 80 <= comparison.runs_needed <= 250
+
+
+def test_a_clearly_lower_rate_is_below_and_needs_no_more_runs():
+    comparison = statistics.compare_rate(5, 40, 0.81)
+    assert comparison.verdict == "below" and comparison.p_value < 1e-6 and comparison.runs_needed is None
+    assert statistics.compare_rate(40, 40, 0.5).verdict == "above"
+
+
+def test_wilson_interval_and_iqm():
+    interval = statistics.rate_interval(18, 20)
+    assert interval.estimate == 0.9 and 0.68 < interval.low < 0.72 and 0.97 < interval.high < 0.99
+    values = np.array([1.0, 2.0, 3.0, 4.0, 100.0, 5.0, 6.0, 7.0])
+    assert statistics.iqm(values) == pytest.approx(4.5)  # the middle half: 3, 4, 5, 6
+    assert statistics.iqm_interval(values[:4]) is None  # fewer than five runs
+    estimate = statistics.iqm_interval(values)
+    assert estimate.low <= estimate.estimate <= estimate.high
+
+
+def test_welch_against_a_published_mean_and_spread():
+    rng = np.random.default_rng(0)
+    close = rng.normal(5236, 167, size=8)
+    far = rng.normal(4300, 167, size=8)
+    assert statistics.compare_mean(close, 5236, 167, "std", 50).verdict == "consistent"
+    below = statistics.compare_mean(far, 5236, 167, "std", 50)
+    assert below.verdict == "below" and below.test == "Welch t-test" and below.p_value < 1e-4
+    # A standard error is turned back into the per-run spread before testing.
+    as_sem = statistics.compare_mean(close, 5236, 167 / math.sqrt(50), "sem", 50)
+    assert as_sem.p_value == pytest.approx(statistics.compare_mean(close, 5236, 167, "std", 50).p_value)
+
+
+def test_the_thesis_tables_are_data_with_sources():
+    references = load_references(THESIS)
+    table_3 = find(references, "halfcheetah_running", "mpc",
+                   {"planner.algorithm": "icem", "planner.budget": "100", "max_steps": "None"}, "episode_return")  # fmt: skip
+    assert (table_3.value, table_3.spread, table_3.runs) == (5236, 167, 50) and "Table 3" in table_3.source
+    cut_short = {"planner.algorithm": "icem", "planner.budget": "100", "max_steps": "200"}
+    assert find(references, "halfcheetah_running", "mpc", cut_short, "episode_return") is None  # not full episodes
+    assert all(r.source for r in references)
+
+
+def fabricate(tmp_path, values: dict[str, list[float]], metric_key="mean_return") -> Tracker:
+    """A store holding a finished point_reach sweep: per algorithm, one run per value."""
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("mixed", "mixed", "hash", "name: mixed\n", {}, "dev")
+    for algorithm, runs in values.items():
+        for seed, value in enumerate(runs):
+            params = {"method": "mpc", "task": "point_reach", "seed": seed, "planner.algorithm": algorithm,
+                      "planner.budget": 50, "max_steps": None, "episodes": 1}  # fmt: skip
+            tags = {"method": "mpc", "task": "point_reach", "algorithm": algorithm, "budget": "50",
+                    "icemlab.override.algorithm": f'"{algorithm}"'}  # fmt: skip
+            run_id = tracker.start_trial(parent, f"{algorithm}{seed}", f"{algorithm}/{seed}", params, tags)
+            tracker.end_trial(run_id, FINISHED, {metric_key: value})
+    tracker.end_sweep(parent, FINISHED, {})
+    return tracker
+
+
+REFERENCE = """entries:
+  - {task: point_reach, method: mpc, match: {planner.algorithm: icem, planner.budget: 50}, metric: episode_return,
+     value: -4.0, spread: 0.5, spread_kind: std, runs: 20, source: "Table X"}
+  - {task: point_reach, method: mpc, match: {planner.algorithm: cem_mpc, planner.budget: 50}, metric: episode_return,
+     value: 10.0, spread: 0.5, spread_kind: std, runs: 20, source: "Table Y"}
+"""
+
+
+def test_report_marks_a_matching_configuration_consistent_and_a_distant_one_below(tmp_path):
+    fabricate(tmp_path, {"icem": [-4.2, -3.9, -4.1, -3.8, -4.3, -4.0], "cem_mpc": [-5.2, -5.5, -5.1, -5.4, -5.6, -5.3]})
+    (tmp_path / "paper.yaml").write_text(REFERENCE)
+    sweep = tmp_path / "mixed.yaml"
+    sweep.write_text("name: mixed\ntask: point_reach\nreference: paper.yaml\n")
+    result = cli("report", str(sweep), "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    lines = {line.split()[1]: line for line in result.stdout.splitlines() if line.startswith("point_reach")}
+    assert "consistent (Welch t-test" in lines["icem"]
+    assert "below (Welch t-test, p=" in lines["cem_mpc"]
+    rows = {row["planner.algorithm" if "planner.algorithm" in row else "algorithm"]: row
+            for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}  # fmt: skip
+    assert rows["icem"]["verdict"] == "consistent" and rows["cem_mpc"]["verdict"] == "below"
+    assert float(rows["cem_mpc"]["p_value"]) < 1e-6 and rows["cem_mpc"]["published_source"] == "Table Y"
+    assert float(rows["icem"]["episode_return_ci_low"]) < float(rows["icem"]["episode_return_mean"])
+    assert rows["icem"]["episode_return_iqm"] != ""  # six runs: the IQM is given
+    assert rows["icem"]["runs_to_settle"] != "" and rows["cem_mpc"]["runs_to_settle"] == ""
+
+
+def test_summary_intervals_follow_the_runs():
+    runs = [report_run("icem", value) for value in (1.0, 2.0, 3.0)]
+    summary = report.summarize(runs, "episode_return", references=[])
+    (group,) = summary.groups
+    assert group.mean == 2.0 and group.interval.low < 2.0 < group.interval.high and group.comparison is None
+
+
+def report_run(algorithm: str, value: float):
+    from orchestrator.tracking import TrialRun
+
+    params = {"method": "mpc", "task": "point_reach", "seed": "0", "planner.algorithm": algorithm}
+    return TrialRun("id", "key", FINISHED, "name", params, {"algorithm": algorithm}, {"mean_return": value})
+
+
+def test_a_missing_reference_file_is_a_located_error(tmp_path):
+    sweep = tmp_path / "s.yaml"
+    sweep.write_text("name: s\ntask: point_reach\nreference: nowhere.yaml\n")
+    with pytest.raises(SweepError) as error:
+        load_sweep(sweep)
+    (problem,) = error.value.problems
+    assert (problem.line, problem.path) == (3, "reference") and "not found" in problem.message
+
+
+def test_a_reference_entry_without_a_source_is_refused_where_it_is(tmp_path):
+    (tmp_path / "paper.yaml").write_text("entries:\n  - {task: point_reach, metric: success, value: 0.5}\n")
+    sweep = tmp_path / "s.yaml"
+    sweep.write_text("name: s\ntask: point_reach\nreference: paper.yaml\n")
+    result = cli("validate", str(sweep), cwd=tmp_path)
+    assert result.returncode == 2
+    assert "paper.yaml:2: entries.0.source: required key is missing" in result.stderr
+
+
+def test_report_of_an_unknown_sweep_changes_nothing(tmp_path):
+    result = cli("report", "never_ran", cwd=tmp_path)
+    assert result.returncode == 1 and "has not run" in result.stderr
+    assert not (tmp_path / "reports").exists()
+
+
+def test_reference_values_match_as_numbers_and_null():
+    entry = Reference(task="t", match={"planner.budget": 100, "max_steps": None}, metric="m", value=1, source="s")
+    assert entry.matches("t", "mpc", {"planner.budget": "100", "max_steps": "None"}, "m")
+    assert not entry.matches("t", "mpc", {"planner.budget": "100", "max_steps": "50"}, "m")
+    assert not entry.matches("t", "mpc", {"planner.budget": "300", "max_steps": "None"}, "m")
