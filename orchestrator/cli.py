@@ -57,6 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--resume", action="store_true", help="continue the latest run of this sweep: run only missing trials"
     )
     run.add_argument("--max-concurrent", type=int, default=None, metavar="N", help="at most N trials at a time")
+    run.add_argument(
+        "--allow-physics-change",
+        action="store_true",
+        help="resume even if finished trials ran another mujoco or gymnasium-robotics version",
+    )
     run.add_argument("--quiet", action="store_true", help="no progress display")
 
     validate = commands.add_parser(
@@ -74,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Without SWEEP: every sweep in the store. With SWEEP (file or name): its trials.",
     )
     status.add_argument("sweep", nargs="?", help="sweep file or sweep name")
+    status.add_argument(
+        "--provenance", action="store_true", help="with each trial: run id, commit, package versions, CPU"
+    )
     _add_tracking(status)
 
     report_cmd = commands.add_parser(
@@ -87,6 +95,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--output", type=Path, default=None, help="directory for summary.csv and plots (default: reports/NAME)"
     )
     _add_tracking(report_cmd)
+
+    reproduce = commands.add_parser(
+        "reproduce",
+        help="run one finished trial again and compare",
+        description="Run a finished trial again in this process from the configuration and seed its MLflow run "
+        "recorded (trial.json), and say whether its headline figures are identical; the package versions it "
+        "recorded are compared with this installation's. Exit 0 when identical, 1 when not.",
+    )
+    reproduce.add_argument("run_id", help="the trial's MLflow run id (icemlab status SWEEP --provenance lists them)")
+    reproduce.add_argument("--threads", type=int, default=None, help="CPUs for the trial (default: all)")
+    _add_tracking(reproduce)
 
     ui = commands.add_parser(
         "ui",
@@ -150,7 +169,7 @@ def cmd_validate(args) -> int:
 def cmd_run(args) -> int:
     loaded = _load(args.sweep)
     from orchestrator.progress import ProgressDisplay
-    from orchestrator.scheduler import ResourceError, SweepScheduler
+    from orchestrator.scheduler import PhysicsChangedError, ResourceError, SweepScheduler
     from orchestrator.tracking import KILLED, RUNNING, Tracker
 
     tracker = Tracker(args.tracking_uri)
@@ -169,7 +188,13 @@ def cmd_run(args) -> int:
         file=sys.stderr,
     )
     scheduler = SweepScheduler(
-        loaded, tracker, address=args.address, resume=args.resume, max_concurrent=args.max_concurrent, display=display
+        loaded,
+        tracker,
+        address=args.address,
+        resume=args.resume,
+        max_concurrent=args.max_concurrent,
+        display=display,
+        allow_physics_change=args.allow_physics_change,
     )
     try:
         outcome = scheduler.run()
@@ -178,6 +203,9 @@ def cmd_run(args) -> int:
         return 1
     except ResourceError as error:
         print(f"icemlab: {error}; nothing was started", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except PhysicsChangedError as error:
+        print(f"icemlab: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         if display:
@@ -242,6 +270,16 @@ def cmd_status(args) -> int:
         )
         if child.error:
             print(f"      {child.error_class or 'error'}: {child.error.strip().splitlines()[-1][:300]}")
+        if args.provenance:
+            tags = child.tags
+            commit = tags.get("icemlab.commit", tags.get("icemlab.version", "?"))
+            dirty = " (uncommitted changes)" if tags.get("icemlab.dirty") == "true" else ""
+            versions = ", ".join(f"{k.removeprefix('version.')} {v}" for k, v in sorted(tags.items())
+                                 if k.startswith("version."))  # fmt: skip
+            print(f"      run {child.run_id}; code {commit}{dirty}")
+            print(f"      {versions}")
+            print(f"      ran on {tags.get('icemlab.cpu_model', '?')}, {tags.get('icemlab.cpus', '?')} CPUs, "
+                  f"host {tags.get('icemlab.host', '?')}")  # fmt: skip
     return 0
 
 
@@ -273,6 +311,26 @@ def cmd_report(args) -> int:
     written = report.write_files(summary, output, histories)
     print(f"\nwrote {', '.join(str(p) for p in written)}", file=sys.stderr)
     return 0
+
+
+def cmd_reproduce(args) -> int:
+    from orchestrator.reproduce import ReproduceError, reproduce
+    from orchestrator.tracking import Tracker
+    from workers.rollout import default_threads
+
+    tracker = Tracker(args.tracking_uri)
+    try:
+        outcome = reproduce(tracker, args.run_id, args.threads or default_threads())
+    except ReproduceError as error:
+        print(f"icemlab: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    for key, recorded, now in outcome.figures:
+        same = "identical" if recorded == now else f"differs by {now - recorded:+.6g}"
+        print(f"{key}: recorded {recorded!r}, now {now!r}: {same}")
+    for package, (recorded, now) in outcome.version_changes.items():
+        print(f"note: the run used {package} {recorded}, this is {now}")
+    print("identical" if outcome.identical else "NOT identical")
+    return 0 if outcome.identical else 1
 
 
 def cmd_ui(args) -> int:
@@ -348,6 +406,7 @@ COMMANDS = {
     "validate": cmd_validate,
     "status": cmd_status,
     "report": cmd_report,
+    "reproduce": cmd_reproduce,
     "ui": cmd_ui,
     "bench": cmd_bench,
     "tasks": cmd_tasks,

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from orchestrator import report
+from orchestrator import provenance, report
 from orchestrator.failures import BAD_CHECKPOINT, CODE_ERROR, LOST_PROCESS, Failure, classify
 from orchestrator.interrupt import InterruptRequest
 from orchestrator.placement import TrialGroup
@@ -53,6 +53,10 @@ def icemlab_version() -> str:
 
 class ResourceError(ValueError):
     """A trial that needs more CPUs than the cluster has: it could never be placed."""
+
+
+class PhysicsChangedError(ValueError):
+    """A resume whose finished trials ran with other physics packages than this process."""
 
 
 def trial_label(trial: Trial) -> str:
@@ -94,6 +98,7 @@ class Attempt:
     ref: Any = None
     round_index: int = 0
     checkpoint_round: int | None = None
+    machine_ref: Any = None
     progress: dict[str, Any] = field(default_factory=dict)
     progress_ref: Any = None
     rss_mb: float | None = None
@@ -178,6 +183,7 @@ class SweepScheduler:
         resume: bool = False,
         max_concurrent: int | None = None,
         display: Callable[[SweepState], None] | None = None,
+        allow_physics_change: bool = False,
     ):
         self.loaded = loaded
         self.sweep = loaded.sweep
@@ -190,14 +196,19 @@ class SweepScheduler:
         self.experiment = self.sweep.tracking.experiment or self.sweep.name
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
         self._active: list[Attempt] = []
+        self.allow_physics_change = allow_physics_change
+        self._provenance = provenance.run_tags()
 
     # -------------------------------------------------------------- plan
     def _parent_run(self) -> tuple[str, list[TrialRun]]:
         if self.resume:
             previous = self.tracker.find_sweep_run(self.experiment, self.sweep.name)
             if previous is not None:
+                runs = self.tracker.trial_runs(previous.run_id)
+                if not self.allow_physics_change:
+                    self._refuse_mixed_physics(runs)
                 self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash)
-                return previous.run_id, self.tracker.trial_runs(previous.run_id)
+                return previous.run_id, runs
         run_id = self.tracker.start_sweep(
             self.experiment,
             self.sweep.name,
@@ -344,13 +355,27 @@ class SweepScheduler:
         table = self.finish_sweep(parent_id, done + skipped, failed)
         return SweepOutcome(parent_id, done, failed, skipped, table)
 
+    def _refuse_mixed_physics(self, runs: list[TrialRun]) -> None:
+        """Stop a resume whose finished trials ran another MuJoCo or gymnasium-robotics than this one."""
+        for run in runs:
+            if run.status != FINISHED:
+                continue
+            changes = provenance.physics_changes(run.tags)
+            if changes:
+                differences = ", ".join(f"{p} {before} then, {now} now" for p, (before, now) in changes.items())
+                raise PhysicsChangedError(
+                    f"{self.loaded.path}: finished trials of sweep {self.sweep.name} ran another simulator "
+                    f"({differences}; run {run.run_id}); resuming would mix their results with new ones in one "
+                    "table. Run the sweep anew (without --resume), or pass --allow-physics-change to mix them."
+                )
+
     # ------------------------------------------------------------ trials
     def _launch(self, state: TrialState) -> Attempt:
         trial, config = state.trial, state.trial.config
         state.attempts += 1
         if state.run_id is None:
             spec = config.spec()
-            tags = {"task": config.task, "method": config.method, "seed": str(config.seed)}
+            tags = {"task": config.task, "method": config.method, "seed": str(config.seed)} | self._provenance
             tags |= METHODS[config.method].labels(spec)
             if trial.variant:
                 tags["icemlab.variant"] = trial.variant
@@ -371,14 +396,18 @@ class SweepScheduler:
             )
         else:
             self.tracker.reopen_trial(state.run_id, state.attempts)
+            self.tracker.set_tags(state.run_id, self._provenance)  # the code that continues the trial
         group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())
 
     def _advance(self, attempt: Attempt, value: Any) -> bool:
         """Move an attempt on after its call returned; True when its trial finished."""
+        import ray
+
         state = attempt.state
         if attempt.phase == "placing":
             runner = attempt.group.start()
+            attempt.machine_ref = runner.machine.remote()
             stored, notes = self.tracker.load_checkpoint(state.run_id, skip=state.bad_checkpoints)
             for note in notes:
                 self.tracker.note(state.run_id, note)
@@ -395,6 +424,10 @@ class SweepScheduler:
             return False
 
         round_report, data = value
+        if attempt.machine_ref is not None:  # answered long before the round's result
+            machine = ray.get(attempt.machine_ref)
+            self.tracker.set_tags(state.run_id, {f"icemlab.{key}": value for key, value in machine.items()})
+            attempt.machine_ref = None
         if not round_report.done:
             # The next round starts before this one is logged: logging overlaps with work.
             attempt.round_index = round_report.index + 1
@@ -408,6 +441,7 @@ class SweepScheduler:
                 round_report.series,
                 round_report.series_start,
                 [(a.path, a.data) for a in round_report.artifacts],
+                round_report.seconds,
             )
             state.logged_rounds.add(round_report.index)
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)

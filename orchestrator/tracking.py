@@ -59,6 +59,8 @@ TAG_PARENT = "mlflow.parentRunId"
 TAG_RUN_NAME = "mlflow.runName"
 ROUND_MARKER = "icemlab.round"
 """Metric logged with the last batch of every round, at step = round index."""
+ROUND_SECONDS = "icemlab.round_seconds"
+"""Wall-clock seconds of every round, at step = round index (sweep plans are estimated from it)."""
 CHECKPOINTS = "checkpoints"
 KEEP_CHECKPOINTS = 3
 MAX_BATCH = 1000  # MLflow's limit of metrics per log_batch request
@@ -272,18 +274,29 @@ class Tracker:
             filter_string=f"tags.`{TAG_PARENT}` = '{parent_run_id}'",
             max_results=50000,
         )
-        return [
-            TrialRun(
-                run.info.run_id,
-                run.data.tags.get(TAG_TRIAL_KEY, ""),
-                run.info.status,
-                run.data.tags.get(TAG_RUN_NAME, ""),
-                dict(run.data.params),
-                dict(run.data.tags),
-                dict(run.data.metrics),
-            )
-            for run in runs
-        ]
+        return [self._trial_record(run) for run in runs]
+
+    def trial_run(self, run_id: str) -> TrialRun | None:
+        """One trial's run by id, or None if the store has no such trial run."""
+        try:
+            run = self.client.get_run(run_id)
+        except MlflowException:
+            return None
+        if run.data.tags.get(TAG_KIND) != "trial":
+            return None
+        return self._trial_record(run)
+
+    @staticmethod
+    def _trial_record(run) -> TrialRun:
+        return TrialRun(
+            run.info.run_id,
+            run.data.tags.get(TAG_TRIAL_KEY, ""),
+            run.info.status,
+            run.data.tags.get(TAG_RUN_NAME, ""),
+            dict(run.data.params),
+            dict(run.data.tags),
+            dict(run.data.metrics),
+        )
 
     def start_trial(
         self,
@@ -314,6 +327,9 @@ class Tracker:
         if self.client.get_run(run_id).info.status != RUNNING:
             self.client.update_run(run_id, status=RUNNING)
 
+    def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
+        self.client.log_batch(run_id, tags=[RunTag(k, str(v)[:MAX_TAG_LENGTH]) for k, v in tags.items()])
+
     def logged_rounds(self, run_id: str) -> set[int]:
         """Rounds whose metrics are in the run (their marker was logged)."""
         return {m.step for m in self.client.get_metric_history(run_id, ROUND_MARKER)}
@@ -327,6 +343,7 @@ class Tracker:
         series: Mapping[str, Sequence[float]],
         series_start: int,
         artifacts: Sequence[tuple[str, bytes]] = (),
+        seconds: float | None = None,
     ) -> None:
         """Log one round: per-step series, round metrics at ``step``, files; the round marker last."""
         now = _now_ms()
@@ -343,6 +360,8 @@ class Tracker:
                     local.parent.mkdir(parents=True, exist_ok=True)
                     local.write_bytes(data)
                     self.client.log_artifact(run_id, str(local), str(Path(path).parent) if "/" in path else None)
+        if seconds is not None:
+            entries.append(Metric(ROUND_SECONDS, float(seconds), now, index))
         # The marker goes into the last batch: a round counts as logged only once all of it is.
         entries.append(Metric(ROUND_MARKER, float(index), now, index))
         for start in range(0, len(entries), MAX_BATCH):

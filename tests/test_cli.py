@@ -15,7 +15,7 @@ from orchestrator.sweep import SweepError, load_sweep, sweep_json_schema
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEM_LINE = re.compile(r"^(?P<file>[^:]+):(?P<line>\d+): (?P<path>[^:]+): (?P<message>.+)$")
-COMMANDS = ["run", "validate", "status", "report", "ui", "bench", "tasks", "schema"]
+COMMANDS = ["run", "validate", "status", "report", "reproduce", "ui", "bench", "tasks", "schema"]
 
 
 @pytest.mark.parametrize("command", COMMANDS)

@@ -54,8 +54,8 @@ def test_welch_against_a_published_mean_and_spread():
 
 def test_the_thesis_tables_are_data_with_sources():
     references = load_references(THESIS)
-    table_3 = find(references, "halfcheetah_running", "mpc",
-                   {"planner.algorithm": "icem", "planner.budget": "100", "max_steps": "None"}, "episode_return")  # fmt: skip
+    full_episodes = {"planner.algorithm": "icem", "planner.budget": "100", "max_steps": "None"}
+    table_3 = find(references, "halfcheetah_running", "mpc", full_episodes, "episode_return")
     assert (table_3.value, table_3.spread, table_3.runs) == (5236, 167, 50) and "Table 3" in table_3.source
     cut_short = {"planner.algorithm": "icem", "planner.budget": "100", "max_steps": "200"}
     assert find(references, "halfcheetah_running", "mpc", cut_short, "episode_return") is None  # not full episodes

@@ -15,8 +15,10 @@ built in actors the same way.
 from __future__ import annotations
 
 import os
+import platform
 import resource
 import sys
+import time
 from typing import Any
 
 from workers import checkpoint, code_fingerprint
@@ -29,6 +31,23 @@ def use_cpus(cpus: float) -> None:
         import torch
 
         torch.set_num_threads(max(1, int(cpus)))
+
+
+def machine_info() -> dict[str, str]:
+    """CPU model, the CPUs this process may use, and the host name."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    return {"cpu_model": model, "cpus": str(cpus), "host": platform.node()}
 
 
 def rss_mb() -> float | None:
@@ -82,7 +101,9 @@ class ProgramRunner:
         """Run round ``index`` (the next one); return its report and a checkpoint of the state after it."""
         if index != self.next_round:
             raise RuntimeError(f"asked for round {index}, but the program is at round {self.next_round}")
+        started = time.perf_counter()
         report = self.program.run_round(index)
+        report = report._replace(seconds=time.perf_counter() - started)
         self.next_round = index + 1
         state = {
             "trial": {"method": self.trial.method, "task": self.trial.task, "seed": self.trial.seed},
@@ -103,6 +124,10 @@ class ProgramRunner:
     def pid(self) -> int:
         """Process id (for fault-injection tests and diagnostics)."""
         return os.getpid()
+
+    def machine(self) -> dict[str, str]:
+        """The machine this trial runs on (recorded with its results)."""
+        return machine_info()
 
     def peak_memory_mb(self) -> float:
         """Peak resident memory of this process."""

@@ -163,6 +163,8 @@ class RoundReport(NamedTuple):
     """Whether this was the trial's last round."""
     summary: Mapping[str, float] = {}
     """With the last round: the trial's headline figures (e.g. mean_return, success_rate)."""
+    seconds: float = 0.0
+    """Wall-clock seconds the round took (set by the runner; plans of later sweeps are estimated from it)."""
 
 
 class Progress(NamedTuple):

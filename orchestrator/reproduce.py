@@ -1,0 +1,68 @@
+"""``icemlab reproduce RUN_ID``: run one finished trial again from what its run recorded.
+
+The run's ``trial.json`` holds the resolved configuration and seed; the trial
+runs again in this process (its roles in-process) and its headline figures
+are compared with the recorded ones. Ground-truth MPC is deterministic per
+seed (native rollouts reproduce MuJoCo bit for bit, whatever the thread
+count), so with the same versions the figures are identical; the versions
+recorded with the run are compared too, since another MuJoCo may step
+differently.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from typing import NamedTuple
+
+from orchestrator import provenance
+from orchestrator.sweep import TrialConfig
+from orchestrator.tracking import FINISHED, Tracker
+from workers.methods import METHODS, run_locally
+
+
+class ReproduceError(ValueError):
+    """A run that cannot be reproduced (unknown, not finished, no recorded configuration)."""
+
+
+class Reproduction(NamedTuple):
+    run_id: str
+    figures: list[tuple[str, float, float]]
+    """(summary metric, recorded, now)."""
+    version_changes: dict[str, tuple[str, str]]
+    """package -> (recorded, now) where they differ."""
+
+    @property
+    def identical(self) -> bool:
+        return all(recorded == now for _, recorded, now in self.figures)
+
+
+def reproduce(tracker: Tracker, run_id: str, cpus: int = 1) -> Reproduction:
+    run = tracker.trial_run(run_id)
+    if run is None:
+        raise ReproduceError(f"no trial run {run_id!r} in {tracker.uri}; `icemlab status SWEEP` lists run ids")
+    if run.status != FINISHED:
+        raise ReproduceError(f"run {run_id} is {run.status}: only a finished trial can be reproduced")
+    with tempfile.TemporaryDirectory() as directory:
+        try:
+            recorded = json.loads(tracker.download(run_id, "trial.json", directory).read_text())
+        except Exception as error:  # noqa: BLE001 - any store error means the same to the user
+            raise ReproduceError(f"run {run_id} has no trial.json (recorded by icemlab 0.1 on): {error}") from None
+    if recorded["method"] not in METHODS:
+        raise ReproduceError(f"run {run_id} ran method {recorded['method']!r}, which this icemlab does not have")
+    config = TrialConfig.from_canonical(recorded)
+    program = METHODS[config.method]
+    reports = run_locally(program, config.spec(), unit_cpus=cpus)
+    summary = reports[-1].summary
+    figures = [
+        (key, run.metrics[key], float(summary[key]))
+        for key in program.metrics.values()
+        if key in run.metrics and key in summary
+    ]
+    current = provenance.package_versions()
+    changes = {
+        name: (run.tags[provenance.VERSION_TAG + name], now)
+        for name, now in current.items()
+        if run.tags.get(provenance.VERSION_TAG + name, now) != now
+    }
+    return Reproduction(run_id, figures, changes)

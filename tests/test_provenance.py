@@ -1,0 +1,61 @@
+"""Provenance on every run, re-running a trial by its id, and resumes that would mix two simulators."""
+
+from __future__ import annotations
+
+import json
+
+from helpers import cli, sweep_runs, write_sweep
+
+from orchestrator import provenance
+from orchestrator.sweep import load_sweep
+from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+
+
+def test_runs_record_what_ran_and_reproduce_gives_the_identical_return(tmp_path):
+    sweep = write_sweep(
+        tmp_path, "provenance", seeds=[0, 1], base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 12}
+    )
+    assert cli("run", str(sweep), "--quiet", cwd=tmp_path).returncode == 0
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    _, children = sweep_runs(tracker.uri, "provenance")
+    versions = provenance.package_versions()
+    for child in children:
+        assert child.status == FINISHED
+        assert len(child.tags["icemlab.commit"]) == 40 and child.tags["icemlab.dirty"] in ("true", "false")
+        for package in ("python", "mujoco", "gymnasium-robotics", "torch", "ray", "mlflow", "numpy"):
+            assert child.tags[f"version.{package}"] == versions[package]
+        assert child.tags["icemlab.cpu_model"] and int(child.tags["icemlab.cpus"]) >= 1
+        recorded = json.loads(tracker.download(child.run_id, "trial.json", tmp_path / child.run_id).read_text())
+        trial = next(t for t in load_sweep(sweep).trials if t.key == child.trial_key)
+        assert recorded == trial.config.canonical()  # the fully resolved settings
+
+    status = cli("status", str(sweep), "--provenance", cwd=tmp_path)
+    assert children[0].tags["icemlab.commit"] in status.stdout and f"mujoco {versions['mujoco']}" in status.stdout
+
+    again = cli("reproduce", children[0].run_id, cwd=tmp_path)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "mean_return: recorded" in again.stdout and again.stdout.strip().endswith("identical")
+
+    # A resume whose finished trials ran another MuJoCo is refused, and changes nothing.
+    tracker.set_tags(children[0].run_id, {"version.mujoco": "3.10.0"})
+    resumed = cli("run", str(sweep), "--resume", "--quiet", cwd=tmp_path)
+    assert resumed.returncode == 2
+    assert f"{sweep}: finished trials of sweep provenance ran another simulator" in resumed.stderr
+    assert (
+        f"mujoco 3.10.0 then, {versions['mujoco']} now" in resumed.stderr and "--allow-physics-change" in resumed.stderr
+    )
+    parent, after = sweep_runs(tracker.uri, "provenance")
+    assert parent.status == FINISHED and [c.status for c in after] == [FINISHED, FINISHED]
+    allowed = cli("run", str(sweep), "--resume", "--allow-physics-change", "--quiet", cwd=tmp_path)
+    assert allowed.returncode == 0 and "already done" in allowed.stderr
+
+
+def test_reproduce_refuses_unknown_and_unfinished_runs(tmp_path):
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    unknown = cli("reproduce", "0123456789abcdef0123456789abcdef", cwd=tmp_path)
+    assert unknown.returncode == 2 and "no trial run" in unknown.stderr
+    parent = tracker.start_sweep("x", "x", "hash", "name: x\n", {}, "dev")
+    running = tracker.start_trial(parent, "key", "trial", {}, {})
+    unfinished = cli("reproduce", running, cwd=tmp_path)
+    assert unfinished.returncode == 2 and "is RUNNING: only a finished trial can be reproduced" in unfinished.stderr
+    assert tracker.trial_run(running).status == "RUNNING"  # nothing changed
