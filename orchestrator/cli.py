@@ -33,6 +33,15 @@ def _add_tracking(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_plan_options(parser: argparse.ArgumentParser, tracking: bool = True) -> None:
+    if tracking:
+        _add_tracking(parser)
+    parser.add_argument(
+        "--cores", type=int, default=32, metavar="N", help="also estimate the wall time on a cluster of N CPUs (32)"
+    )
+    parser.add_argument("--no-estimate", action="store_true", help="no time estimate (no calibration run)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="icemlab", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -63,15 +72,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="resume even if finished trials ran another mujoco or gymnasium-robotics version",
     )
     run.add_argument("--quiet", action="store_true", help="no progress display")
+    run.add_argument("--dry-run", action="store_true", help="print the trials and the plan, start nothing")
+    _add_plan_options(run, tracking=False)
 
     validate = commands.add_parser(
         "validate",
         help="check a sweep without running it",
         description="Check a sweep file and every trial it expands to; print one FILE:LINE: path: message "
-        "line per problem and exit 2, or the trials and exit 0. Starts nothing.",
+        "line per problem and exit 2, or the trials and a plan (trials already finished in the store, "
+        "core-hours, wall time here and on a cluster) and exit 0. Starts nothing.",
     )
     validate.add_argument("sweep", type=Path)
     validate.add_argument("--quiet", action="store_true", help="print nothing when the sweep is valid")
+    _add_plan_options(validate)
 
     status = commands.add_parser(
         "status",
@@ -155,19 +168,45 @@ def _load(path: Path):
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 
+def _existing_store(uri: str | None):
+    """A Tracker on the store if it exists already (plans never create one)."""
+    from orchestrator.tracking import Tracker, resolve_tracking_uri
+
+    uri = resolve_tracking_uri(uri)
+    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).exists():
+        return None
+    return Tracker(uri)
+
+
+def _print_plan(loaded, args) -> None:
+    from orchestrator import plan
+
+    tracker = _existing_store(args.tracking_uri)
+    finished = plan.finished_keys(loaded, tracker)
+    print(f"{loaded.path}: valid, {len(loaded.trials)} trial(s)")
+    for trial in loaded.trials:
+        shown = ({"variant": trial.variant} if trial.variant else {}) | trial.overrides
+        swept = ", ".join(f"{k}={v}" for k, v in shown.items())
+        done = "  (finished)" if trial.key in finished else ""
+        print(f"  {trial.key}  seed {trial.config.seed}  {swept}{done}")
+    if args.no_estimate:
+        return
+    for line in plan.describe(loaded, plan.plan_sweep(loaded, tracker), args.cores):
+        print(line)
+
+
 def cmd_validate(args) -> int:
     loaded = _load(args.sweep)
     if not args.quiet:
-        print(f"{args.sweep}: valid, {len(loaded.trials)} trial(s)")
-        for trial in loaded.trials:
-            shown = ({"variant": trial.variant} if trial.variant else {}) | trial.overrides
-            swept = ", ".join(f"{k}={v}" for k, v in shown.items())
-            print(f"  {trial.key}  seed {trial.config.seed}  {swept}")
+        _print_plan(loaded, args)
     return 0
 
 
 def cmd_run(args) -> int:
     loaded = _load(args.sweep)
+    if args.dry_run:
+        _print_plan(loaded, args)
+        return 0
     from orchestrator.progress import ProgressDisplay
     from orchestrator.scheduler import PhysicsChangedError, ResourceError, SweepScheduler
     from orchestrator.tracking import KILLED, RUNNING, Tracker

@@ -32,7 +32,7 @@ from orchestrator.failures import BAD_CHECKPOINT, CODE_ERROR, LOST_PROCESS, Fail
 from orchestrator.interrupt import InterruptRequest
 from orchestrator.placement import TrialGroup
 from orchestrator.sweep import LoadedSweep, Trial
-from orchestrator.tracking import FAILED, FINISHED, KILLED, Tracker, TrialRun
+from orchestrator.tracking import CORE_SECONDS_PER_WORK, FAILED, FINISHED, KILLED, ROUND_SECONDS, Tracker, TrialRun
 from workers.methods import METHODS
 
 POLL_SECONDS = 0.5
@@ -448,10 +448,16 @@ class SweepScheduler:
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
         if not round_report.done:
             return False
-        self.tracker.end_trial(state.run_id, FINISHED, round_report.summary)
+        self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
         state.rounds_done = state.total_rounds
         self._end_attempt(attempt)
         return True
+
+    def _cost(self, state: TrialState, attempt: Attempt) -> dict[str, float]:
+        """Core-seconds per unit of the method's work, from the rounds' seconds: what later plans estimate from."""
+        seconds = sum(value for _, value in self.tracker.metric_history(state.run_id, ROUND_SECONDS))
+        work = self.program.work(state.trial.config.spec())
+        return {CORE_SECONDS_PER_WORK: seconds * attempt.group.cpus / work} if work > 0 and seconds > 0 else {}
 
     def _failed(self, attempt: Attempt, failure: Failure) -> str:
         """Record a failed attempt and decide: "retry" (queued again) or "failed" (the trial is FAILED)."""

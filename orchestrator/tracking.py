@@ -61,6 +61,8 @@ ROUND_MARKER = "icemlab.round"
 """Metric logged with the last batch of every round, at step = round index."""
 ROUND_SECONDS = "icemlab.round_seconds"
 """Wall-clock seconds of every round, at step = round index (sweep plans are estimated from it)."""
+CORE_SECONDS_PER_WORK = "icemlab.core_seconds_per_work"
+"""A finished trial's CPU cost per unit of its method's work (MPC: per environment step)."""
 CHECKPOINTS = "checkpoints"
 KEEP_CHECKPOINTS = 3
 MAX_BATCH = 1000  # MLflow's limit of metrics per log_batch request
@@ -251,6 +253,17 @@ class Tracker:
         for path in artifacts:
             self.client.log_artifact(run_id, str(path))
         self.client.set_terminated(run_id, status=status)
+
+    def past_costs(self, tags: Mapping[str, str], limit: int = 20) -> list[float]:
+        """Core-seconds per unit of work of the newest finished trials whose tags match (for sweep plans)."""
+        experiments = [e.experiment_id for e in self.client.search_experiments()]
+        if not experiments:
+            return []
+        conditions = [f"tags.`{key}` = '{value}'" for key, value in tags.items()]
+        conditions += ["attributes.status = 'FINISHED'", f"metrics.`{CORE_SECONDS_PER_WORK}` > 0"]
+        runs = self.client.search_runs(experiments, " and ".join(conditions), max_results=limit,
+                                       order_by=["attributes.start_time DESC"])  # fmt: skip
+        return [run.data.metrics[CORE_SECONDS_PER_WORK] for run in runs]
 
     def sweeps(self) -> list[SweepRun]:
         """Every sweep parent run, newest first."""

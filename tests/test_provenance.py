@@ -59,3 +59,20 @@ def test_reproduce_refuses_unknown_and_unfinished_runs(tmp_path):
     unfinished = cli("reproduce", running, cwd=tmp_path)
     assert unfinished.returncode == 2 and "is RUNNING: only a finished trial can be reproduced" in unfinished.stderr
     assert tracker.trial_run(running).status == "RUNNING"  # nothing changed
+
+
+def test_validate_plans_from_the_store_or_a_calibration(tmp_path):
+    """A plan lists finished trials and estimates core-hours and wall time; it never creates a store."""
+    sweep = write_sweep(
+        tmp_path, "planned", seeds=[0, 1], base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 12}
+    )
+    fresh = cli("validate", str(sweep), "--cores", "64", cwd=tmp_path)
+    assert fresh.returncode == 0 and not (tmp_path / "mlflow.db").exists()
+    assert "plan: 2 trial(s) to run, 0 already finished" in fresh.stdout
+    assert "from a calibration here" in fresh.stdout and "a cluster of 64 CPUs: about" in fresh.stdout
+    assert cli("run", str(sweep), "--quiet", cwd=tmp_path).returncode == 0
+    sweep.write_text(sweep.read_text().replace("- 1\n", "- 1\n- 2\n"))  # one more seed
+    planned = cli("run", str(sweep), "--dry-run", cwd=tmp_path)
+    assert planned.returncode == 0 and planned.stdout.count("(finished)") == 2
+    assert "plan: 1 trial(s) to run, 2 already finished" in planned.stdout
+    assert "from 2 past run(s)" in planned.stdout  # the finished trials' measured cost

@@ -254,6 +254,16 @@ class Program(ABC):
         """The labels as short words for run names and report rows."""
         return [value if not value.replace(".", "").isdigit() else f"{key}={value}" for key, value in labels.items()]
 
+    @classmethod
+    def work(cls, trial: TrialSpec) -> float:
+        """The trial's amount of work in the method's unit (default: rounds), for time estimates."""
+        return float(cls.planned_rounds(trial))
+
+    @classmethod
+    def calibrate(cls, trial: TrialSpec, cpus: int) -> float | None:
+        """Core-seconds per unit of :meth:`work`, measured in a few seconds here; None if the method cannot."""
+        return None
+
     # --------------------------------------------------------------- run
     def total_rounds(self) -> int:
         return self.planned_rounds(self.trial)

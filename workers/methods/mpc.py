@@ -71,6 +71,32 @@ class MpcProgram(Program):
         return [RoleSpec("simulation", SimulationWorker, remote, unit_cpus, kwargs)] if remote else []
 
     @classmethod
+    def work(cls, trial: TrialSpec) -> float:
+        """Environment steps of the whole trial."""
+        from workers.tasks import TASKS
+
+        return float(trial.settings.episodes * (trial.settings.max_steps or TASKS[trial.task].episode_length))
+
+    @classmethod
+    def calibrate(cls, trial: TrialSpec, cpus: int, steps: int = 4) -> float:
+        """Core-seconds per environment step: a few MPC steps of the trial's planner, the first left out."""
+        import time
+
+        task = make_task(trial.task, trial.settings.task_options)
+        env = task.make_env()
+        pool = SimulationPool(trial.task, cpus, None, trial.settings.task_options)
+        try:
+            planner = CEMPlanner(trial.settings.planner, task.action_dim, seed=trial.seed)
+            episode = MpcEpisode(task, env, planner, pool, trial.seed, steps)
+            episode.run(1)  # warms the thread pool and the caches
+            started = time.perf_counter()
+            episode.run()
+            return (time.perf_counter() - started) / (steps - 1) * cpus
+        finally:
+            pool.close()
+            env.close()
+
+    @classmethod
     def labels(cls, trial: TrialSpec) -> dict[str, str]:
         planner = trial.settings.planner
         return {"algorithm": planner.algorithm, "budget": str(planner.budget)}
