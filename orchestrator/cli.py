@@ -372,6 +372,23 @@ def cmd_reproduce(args) -> int:
     return 0 if outcome.identical else 1
 
 
+RUNS_VIEW = "#/{path}?workflowType=machine_learning"
+"""MLflow 3 opens every experiment in its GenAI view: the experiment tag mlflow.experimentKind does not change
+that (checked in Chromium with MLflow 3.17); the URL's workflowType does, so icemlab's links carry it."""
+
+
+def _sweep_links(uri: str, base: str, newest: int = 5) -> list[tuple[str, str]]:
+    """Links that open the newest sweeps' runs in the dashboard (for a store that exists)."""
+    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).exists():
+        return []
+    from orchestrator.tracking import Tracker
+
+    return [
+        (sweep.name, f"{base}/{RUNS_VIEW.format(path=f'experiments/{sweep.experiment_id}/runs')}")
+        for sweep in Tracker(uri).sweeps()[:newest]
+    ]
+
+
 def cmd_ui(args) -> int:
     from orchestrator.tracking import resolve_tracking_uri
 
@@ -391,9 +408,13 @@ def cmd_ui(args) -> int:
         "--workers",
         "1",
     ]
-    print(f"MLflow dashboard for {uri} at http://{args.host}:{args.port} (Ctrl-C stops it)", file=sys.stderr)
-    # MLflow 3 keeps its sidebar mode in the browser and starts in GenAI mode for every experiment.
-    print("In the sidebar, switch 'GenAI' to 'Model training' once for the runs and metric charts.", file=sys.stderr)
+    base = f"http://{args.host}:{args.port}"
+    print(
+        f"MLflow dashboard for {uri} at {base}/{RUNS_VIEW.format(path='experiments')} (Ctrl-C stops it)",
+        file=sys.stderr,
+    )
+    for name, link in _sweep_links(uri, base):
+        print(f"  {name}: {link}", file=sys.stderr)
     try:
         return subprocess.call(command, env=env)
     except KeyboardInterrupt:

@@ -1,8 +1,9 @@
 """The MLflow dashboard, seen in a real browser (marker: browser).
 
-Runs a small sweep, serves the embedded store with `icemlab ui`, opens the
-sweep's parent run and one child run in headless Chromium and checks that the
-runs and their metrics are on the rendered pages. The screenshot of the parent
+Runs a small sweep, serves the embedded store with `icemlab ui`, follows the
+link it prints to the sweep's runs, opens the sweep's parent run and one child
+run in headless Chromium and checks that the runs and their metrics are on the
+rendered pages. The screenshot of the parent
 run is kept in test-artifacts/dashboard.png. Needs Debian's chromium package.
 """
 
@@ -61,9 +62,19 @@ def test_dashboard_shows_the_sweep_runs_and_metrics(tmp_path):
     server = start_cli("ui", "--port", str(port), cwd=tmp_path)
     base = f"http://127.0.0.1:{port}"
     try:
+        link = None
+        for line in server.stdout:  # icemlab ui prints a link per sweep before MLflow starts
+            if line.strip().startswith("dashboard: http"):
+                link = line.split(": ", 1)[1].strip()
+                break
         wait_for(
             lambda: urllib.request.urlopen(f"{base}/health", timeout=2).status == 200, timeout=90, what="the MLflow UI"
         )
+        # The printed link opens the sweep's runs; the experiment's own page opens MLflow's GenAI overview,
+        # whatever the experiment's kind tag says (MLflow 3.17), which is why the links carry workflowType.
+        runs_page = browse(link)
+        assert "Model training" in runs_page and "matching runs" in runs_page and "dashboard" in runs_page
+        assert "Detect Issues" in browse(f"{base}/#/experiments/{parent.experiment_id}")
         experiment = parent.experiment_id
         parent_url = f"{base}/#/experiments/{experiment}/runs/{parent.run_id}"
         page = browse(parent_url)
