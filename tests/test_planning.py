@@ -387,3 +387,69 @@ def test_colored_noise_samples_are_smoother_with_higher_beta():
         return np.abs(np.diff(first, axis=1)).mean()
 
     assert roughness(3.0) < roughness(1.0) < roughness(0.0)
+
+
+def test_truncated_normal_matches_scipy_with_offset_means():
+    """Inverse-CDF sampling against scipy's truncnorm, for means away from zero and near a bound."""
+    from scipy.stats import truncnorm
+
+    rng = np.random.default_rng(4)
+    mean, std = np.array([0.6, -0.7, 0.2]), np.array([0.5, 0.3, 1.5])
+    samples = truncated_normal(mean, std, -1.0, 1.0, 60000, rng)
+    a, b = (-1.0 - mean) / std, (1.0 - mean) / std
+    np.testing.assert_allclose(samples.mean(axis=0), truncnorm.mean(a, b, loc=mean, scale=std), atol=0.01)
+    np.testing.assert_allclose(samples.std(axis=0), truncnorm.std(a, b, loc=mean, scale=std), atol=0.01)
+
+
+def test_colored_samples_spread_by_sigma_around_the_mean():
+    """iCEM samples clip(mu + C^beta sigma): the spread scales with sigma, centred on the mean."""
+    for sigma in (0.05, 0.2):
+        recorder = Recorder()
+        planner = make("icem", noise_beta=0.0, sigma_init=sigma, shift_elites=False, add_mean=False)
+        planner.memory = planner.initial_memory(np.full((10, 2), 0.3))
+        planner.plan(recorder)
+        first = recorder.batches[0]
+        assert first.mean() == pytest.approx(0.3, abs=0.02)
+        assert first.std() == pytest.approx(sigma, rel=0.15)
+
+
+def test_without_add_mean_the_mean_is_not_evaluated(monkeypatch):
+    planner = make("cem_mpc")
+    means = []
+    sample = planner._sample
+    monkeypatch.setattr(
+        planner, "_sample", lambda mean, std, count: means.append(mean.copy()) or sample(mean, std, count)
+    )
+    recorder = Recorder()
+    planner.plan(recorder)
+    assert not any(np.array_equal(row, means[-1]) for row in recorder.batches[-1])
+
+
+def test_several_proposals_are_clipped_into_the_action_bounds():
+    proposals = np.stack([np.full((10, 2), 0.25), np.full((10, 2), 3.0)])
+    recorder = Recorder()
+    make("icem", shift_elites=False).plan(recorder, proposals=proposals)
+    last = recorder.batches[-1]
+    np.testing.assert_array_equal(last[1], proposals[0])
+    np.testing.assert_array_equal(last[2], np.ones((10, 2)))  # clipped to the bound
+
+
+def test_cost_batches_keep_their_aggregate_and_refuse_mismatches():
+    batch = CostBatch(np.arange(12.0).reshape(4, 3), "max", {"guide": np.arange(4.0)})
+    taken = batch.take(np.array([2, 0]))
+    assert taken.aggregate == "max" and list(taken.main()) == [8.0, 2.0]
+    with pytest.raises(ValueError, match="different components"):
+        CostBatch.concatenate(batch, CostBatch(np.zeros((1, 3))))
+    planner = make("icem")
+    with pytest.raises(ValueError, match="expected"):
+        planner.plan(lambda actions: np.zeros(len(actions) + 1))
+    with pytest.raises(ValueError, match="component 'guide'"):
+        planner.plan(lambda actions: CostBatch(np.zeros(len(actions)), components={"guide": np.zeros(2)}))
+
+
+def test_fresh_planner_state_round_trips_without_elites():
+    fresh = make("icem", seed=3)
+    other = make("icem", seed=9)
+    other.load_state_dict(fresh.state_dict())
+    assert other.memory.elites is None
+    np.testing.assert_array_equal(fresh.plan(quadratic_cost).action, other.plan(quadratic_cost).action)
