@@ -71,29 +71,11 @@ class SimState:
 
     def to_tree(self) -> dict[str, Any]:
         """The state as checkpoint leaves (see workers.checkpoint)."""
-        tree: dict[str, Any] = {
-            "physics": self.physics,
-            "warmstart": self.warmstart,
-            "mocap_pos": self.mocap_pos,
-            "mocap_quat": self.mocap_quat,
-            "frames": self.frames,
-            "model_params": dict(self.model_params),
-        }
-        if self.goal is not None:
-            tree["goal"] = self.goal
-        return tree
+        return _state_tree(self)
 
     @classmethod
     def from_tree(cls, tree: dict[str, Any]) -> SimState:
-        return cls(
-            physics=np.asarray(tree["physics"]),
-            warmstart=np.asarray(tree["warmstart"]),
-            mocap_pos=np.asarray(tree["mocap_pos"]),
-            mocap_quat=np.asarray(tree["mocap_quat"]),
-            frames=np.asarray(tree["frames"]),
-            model_params={k: np.asarray(v) for k, v in (tree.get("model_params") or {}).items()},
-            goal=None if tree.get("goal") is None else np.asarray(tree["goal"]),
-        )
+        return _state_from_tree(cls, tree)
 
 
 @dataclass
@@ -112,13 +94,11 @@ class SimStates:
     model_params: dict[str, np.ndarray] = field(default_factory=dict)
     goal: np.ndarray | None = None
 
-    PER_STEP: ClassVar[tuple[str, ...]] = ("physics", "warmstart", "mocap_pos", "mocap_quat", "frames")
-
     @classmethod
     def stack(cls, states: list[SimState]) -> SimStates:
         if not states:
             raise ValueError("no states to stack")
-        fields = {name: np.stack([getattr(s, name) for s in states]) for name in cls.PER_STEP}
+        fields = {name: np.stack([getattr(s, name) for s in states]) for name in PER_STEP_FIELDS}
         return cls(**fields, model_params=dict(states[0].model_params), goal=states[0].goal)
 
     def __len__(self) -> int:
@@ -126,25 +106,37 @@ class SimStates:
 
     def __getitem__(self, index: int) -> SimState:
         return SimState(
-            **{name: getattr(self, name)[index] for name in self.PER_STEP},
+            **{name: getattr(self, name)[index] for name in PER_STEP_FIELDS},
             model_params=self.model_params,
             goal=self.goal,
         )
 
     def to_tree(self) -> dict[str, Any]:
-        tree: dict[str, Any] = {name: getattr(self, name) for name in self.PER_STEP}
-        tree["model_params"] = dict(self.model_params)
-        if self.goal is not None:
-            tree["goal"] = self.goal
-        return tree
+        return _state_tree(self)
 
     @classmethod
     def from_tree(cls, tree: dict[str, Any]) -> SimStates:
-        return cls(
-            **{name: np.asarray(tree[name]) for name in cls.PER_STEP},
-            model_params={k: np.asarray(v) for k, v in (tree.get("model_params") or {}).items()},
-            goal=None if tree.get("goal") is None else np.asarray(tree["goal"]),
-        )
+        return _state_from_tree(cls, tree)
+
+
+PER_STEP_FIELDS = ("physics", "warmstart", "mocap_pos", "mocap_quat", "frames")
+"""The fields of a simulator state that change every step (the others are fixed within an episode)."""
+
+
+def _state_tree(state: SimState | SimStates) -> dict[str, Any]:
+    tree: dict[str, Any] = {name: getattr(state, name) for name in PER_STEP_FIELDS}
+    tree["model_params"] = dict(state.model_params)
+    if state.goal is not None:
+        tree["goal"] = state.goal
+    return tree
+
+
+def _state_from_tree(cls, tree: dict[str, Any]):
+    return cls(
+        **{name: np.asarray(tree[name]) for name in PER_STEP_FIELDS},
+        model_params={k: np.asarray(v) for k, v in (tree.get("model_params") or {}).items()},
+        goal=None if tree.get("goal") is None else np.asarray(tree["goal"]),
+    )
 
 
 class RolloutBatch(NamedTuple):
