@@ -139,3 +139,25 @@ def test_halfcheetah_flip_penalty_option(task_bundle):
     flipped = np.abs(batch.states[..., 3]) > np.pi / 2  # qpos[2] is the root angle
     assert flipped.any()
     np.testing.assert_array_equal(penalised.costs(model, batch) - plain.costs(model, batch), 10.0 * flipped)
+
+
+def test_relocate_planning_cost_leaves_out_the_palm_to_target_term_by_default(task_bundle):
+    """The authors' cost omits -0.5 ||palm - target|| while the ball is up; the option puts it back."""
+    from workers.rollout import BatchEvaluator
+    from workers.tasks.adroit import Relocate
+
+    task, env, model = task_bundle("relocate")
+    env.reset(seed=3)
+    state = task.capture(env)
+    actions = np.random.default_rng(0).uniform(-1, 1, (4, 5, task.action_dim))
+    with BatchEvaluator(task, model, threads=1) as evaluator:
+        batch = evaluator.simulate(state, actions)
+    q = task._batch_quantities(model, batch)
+    q["ball"] = q["ball"].copy()
+    q["ball"][..., 2] = 0.1  # pretend the ball is lifted everywhere
+    lifted_batch = batch._replace(frames=batch.frames.copy())
+    lifted_batch.frames[..., task.frame_slice("Object")] = q["ball"]
+    palm_target = 0.5 * np.linalg.norm(q["palm"] - q["target"], axis=-1)
+    default, with_term = Relocate(), Relocate(palm_target_term=True)
+    np.testing.assert_allclose(with_term.costs(model, lifted_batch), -task.rewards(model, lifted_batch))
+    np.testing.assert_allclose(default.costs(model, lifted_batch) + palm_target, with_term.costs(model, lifted_batch))

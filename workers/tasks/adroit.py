@@ -162,15 +162,26 @@ class DoorSparse(Door):
     description = "Adroit door without the palm-to-handle term (200 steps)"
 
 
+class RelocateOptions(TaskOptions):
+    palm_target_term: bool = False
+    """Keep DAPG's -0.5 ||palm - target|| (while the ball is lifted) in the planning cost. The thesis authors'
+    implementation leaves it out of its cost (the line is commented out), so the hand is pulled to the target
+    only through the ball; rewards and reported returns always include it."""
+
+
 class Relocate(_AdroitTask):
     """Relocate (DAPG): pick up the ball and move it to the target.
 
     r = -0.1 ||palm - ball|| + [ball_z > 0.04] (1 - 0.5 ||palm - target|| - 0.5 ||ball - target||)
         + 10 [||ball - target|| < 0.1] + 20 [||ball - target|| < 0.05];
     the goal holds while ||ball - target|| < 0.1.
+
+    Planning cost (option ``palm_target_term``): by default the negative reward without the palm-to-target
+    term, as the thesis authors' implementation computed it.
     """
 
     name = "relocate"
+    Options = RelocateOptions
     env_id = "AdroitHandRelocate-v1"
     action_dim = 30
     colored_noise_beta = 3.5
@@ -200,3 +211,11 @@ class Relocate(_AdroitTask):
 
     def _achieved(self, q):
         return np.linalg.norm(q["ball"] - q["target"], axis=-1) < 0.1
+
+    def costs(self, model, batch):
+        q = self._batch_quantities(model, batch)
+        costs = -self._reward(q)
+        if not self.options.palm_target_term:
+            lifted = q["ball"][..., 2] > 0.04
+            costs = costs - lifted * 0.5 * np.linalg.norm(q["palm"] - q["target"], axis=-1)
+        return costs
