@@ -310,15 +310,11 @@ def cmd_status(args) -> int:
         if child.error:
             print(f"      {child.error_class or 'error'}: {child.error.strip().splitlines()[-1][:300]}")
         if args.provenance:
-            tags = child.tags
-            commit = tags.get("icemlab.commit", tags.get("icemlab.version", "?"))
-            dirty = " (uncommitted changes)" if tags.get("icemlab.dirty") == "true" else ""
-            versions = ", ".join(f"{k.removeprefix('version.')} {v}" for k, v in sorted(tags.items())
-                                 if k.startswith("version."))  # fmt: skip
-            print(f"      run {child.run_id}; code {commit}{dirty}")
-            print(f"      {versions}")
-            print(f"      ran on {tags.get('icemlab.cpu_model', '?')}, {tags.get('icemlab.cpus', '?')} CPUs, "
-                  f"host {tags.get('icemlab.host', '?')}")  # fmt: skip
+            machine = child.machine
+            print(f"      run {child.run_id}; code {child.code}")
+            print("      " + ", ".join(f"{name} {v}" for name, v in sorted(child.versions.items())))
+            print(f"      ran on {machine.get('cpu_model', '?')}, {machine.get('cpus', '?')} CPUs, "
+                  f"host {machine.get('host', '?')}")  # fmt: skip
     return 0
 
 

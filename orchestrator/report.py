@@ -25,10 +25,9 @@ import numpy as np  # noqa: E402
 
 from orchestrator import statistics  # noqa: E402
 from orchestrator.references import Reference, find  # noqa: E402
-from orchestrator.tracking import TAG_VARIANT, TrialRun  # noqa: E402
+from orchestrator.tracking import TrialRun  # noqa: E402
 from workers.methods import METHODS  # noqa: E402
 
-OVERRIDE_PREFIX = "icemlab.override."
 RATE_METRICS = {"success"}
 """Metrics that are rates of per-episode successes: intervals and tests treat them as binomial."""
 
@@ -55,11 +54,7 @@ def result_from_run(run: TrialRun) -> TrialResult:
     method = run.params.get("method", run.tags.get("method", "mpc"))
     program = METHODS.get(method)
     labels = {k: run.tags[k] for k in (program.label_paths if program else ()) if k in run.tags}
-    overrides = {
-        key.removeprefix(OVERRIDE_PREFIX): json.loads(value)
-        for key, value in run.tags.items()
-        if key.startswith(OVERRIDE_PREFIX)
-    }
+    overrides = run.overrides
     return TrialResult(
         run_id=run.run_id,
         trial_key=run.trial_key,
@@ -67,7 +62,7 @@ def result_from_run(run: TrialRun) -> TrialResult:
         method=method,
         seed=int(run.params.get("seed", "0")),
         labels=labels,
-        variant=run.tags.get(TAG_VARIANT),
+        variant=run.variant,
         overrides=overrides,
         values=dict(run.metrics),
         params=dict(run.params),

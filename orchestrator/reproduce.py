@@ -59,10 +59,10 @@ def reproduce(tracker: Tracker, run_id: str, cpus: int = 1) -> Reproduction:
         for key in program.metrics.values()
         if key in run.metrics and key in summary
     ]
-    current = provenance.package_versions()
+    recorded_versions = run.versions
     changes = {
-        name: (run.tags[provenance.VERSION_TAG + name], now)
-        for name, now in current.items()
-        if run.tags.get(provenance.VERSION_TAG + name, now) != now
+        name: (recorded_versions[name], now)
+        for name, now in provenance.package_versions().items()
+        if recorded_versions.get(name, now) != now
     }
     return Reproduction(run_id, figures, changes)

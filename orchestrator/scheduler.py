@@ -197,7 +197,7 @@ class SweepScheduler:
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
         self._active: list[Attempt] = []
         self.allow_physics_change = allow_physics_change
-        self._provenance = provenance.run_tags()
+        self._provenance = provenance.current()
 
     # -------------------------------------------------------------- plan
     def _parent_run(self) -> tuple[str, list[TrialRun]]:
@@ -360,7 +360,7 @@ class SweepScheduler:
         for run in runs:
             if run.status != FINISHED:
                 continue
-            changes = provenance.physics_changes(run.tags)
+            changes = provenance.physics_changes(run.versions)
             if changes:
                 differences = ", ".join(f"{p} {before} then, {now} now" for p, (before, now) in changes.items())
                 raise PhysicsChangedError(
@@ -375,11 +375,8 @@ class SweepScheduler:
         state.attempts += 1
         if state.run_id is None:
             spec = config.spec()
-            tags = {"task": config.task, "method": config.method, "seed": str(config.seed)} | self._provenance
+            tags = {"task": config.task, "method": config.method, "seed": str(config.seed)}
             tags |= METHODS[config.method].labels(spec)
-            if trial.variant:
-                tags["icemlab.variant"] = trial.variant
-            tags |= {f"icemlab.override.{k}": json.dumps(v) for k, v in trial.overrides.items()}
             params = config.flat() | {
                 "resources.threads_per_worker": self._threads,
                 "resources.simulation_workers": self.sweep.resources.simulation_workers,
@@ -393,10 +390,12 @@ class SweepScheduler:
                 params=params,
                 tags=tags,
                 artifacts={"trial.json": json.dumps(config.canonical(), indent=2, sort_keys=True)},
+                variant=trial.variant,
+                overrides=trial.overrides,
             )
         else:
             self.tracker.reopen_trial(state.run_id, state.attempts)
-            self.tracker.set_tags(state.run_id, self._provenance)  # the code that continues the trial
+        self.tracker.record_provenance(state.run_id, self._provenance)  # the code that runs (or continues) it
         group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())
 
@@ -426,7 +425,7 @@ class SweepScheduler:
         round_report, data = value
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
-            self.tracker.set_tags(state.run_id, {f"icemlab.{key}": value for key, value in machine.items()})
+            self.tracker.record_machine(state.run_id, machine)
             attempt.machine_ref = None
         if not round_report.done:
             # The next round starts before this one is logged: logging overlaps with work.

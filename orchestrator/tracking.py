@@ -55,6 +55,15 @@ TAG_ERROR_CLASS = "icemlab.error_class"
 TAG_ROUNDS = "icemlab.rounds"
 TAG_FAILED_TRIALS = "icemlab.failed_trials"
 TAG_INTERRUPTED = "icemlab.interrupted"
+TAG_OVERRIDE = "icemlab.override."
+"""Prefix of the tags that hold a trial's swept values (JSON)."""
+TAG_VERSION = "version."
+"""Prefix of the tags that hold the package versions a trial ran with."""
+TAG_CODE_VERSION = "icemlab.version"
+TAG_COMMIT = "icemlab.commit"
+TAG_DIRTY = "icemlab.dirty"
+TAG_MACHINE = "icemlab.machine."
+"""Prefix of the tags that describe the worker a trial ran on (cpu_model, cpus, host)."""
 TAG_PARENT = "mlflow.parentRunId"
 TAG_RUN_NAME = "mlflow.runName"
 ROUND_MARKER = "icemlab.round"
@@ -127,6 +136,29 @@ class TrialRun(NamedTuple):
     def rounds(self) -> int:
         """Rounds logged so far."""
         return int(self.tags.get(TAG_ROUNDS, "0"))
+
+    @property
+    def overrides(self) -> dict[str, Any]:
+        """The trial's swept values."""
+        return {k.removeprefix(TAG_OVERRIDE): json.loads(v) for k, v in self.tags.items() if k.startswith(TAG_OVERRIDE)}
+
+    @property
+    def versions(self) -> dict[str, str]:
+        """package -> version the trial ran with."""
+        return {k.removeprefix(TAG_VERSION): v for k, v in self.tags.items() if k.startswith(TAG_VERSION)}
+
+    @property
+    def machine(self) -> dict[str, str]:
+        """The worker the trial ran on: cpu_model, cpus, host."""
+        return {k.removeprefix(TAG_MACHINE): v for k, v in self.tags.items() if k.startswith(TAG_MACHINE)}
+
+    @property
+    def code(self) -> str:
+        """The commit that ran (with a note on uncommitted changes), else the package version."""
+        commit = self.tags.get(TAG_COMMIT)
+        if commit is None:
+            return self.tags.get(TAG_CODE_VERSION, "?")
+        return commit + (" (uncommitted changes)" if self.tags.get(TAG_DIRTY) == "true" else "")
 
 
 class StoredCheckpoint(NamedTuple):
@@ -319,14 +351,16 @@ class Tracker:
         params: dict[str, Any],
         tags: dict[str, str],
         artifacts: Mapping[str, str] = {},
+        variant: str | None = None,
+        overrides: Mapping[str, Any] = {},
     ) -> str:
-        """Create a trial's child run with its params, tags and text artifacts (e.g. the resolved settings)."""
+        """Create a trial's child run with its params, tags, variant and swept values, and text artifacts."""
         parent = self.client.get_run(parent_run_id)
-        run = self.client.create_run(
-            parent.info.experiment_id,
-            run_name=name,
-            tags={TAG_PARENT: parent_run_id, TAG_KIND: "trial", TAG_TRIAL_KEY: trial_key, TAG_ATTEMPTS: "1", **tags},
-        )
+        tags = {TAG_PARENT: parent_run_id, TAG_KIND: "trial", TAG_TRIAL_KEY: trial_key, TAG_ATTEMPTS: "1", **tags}
+        if variant:
+            tags[TAG_VARIANT] = variant
+        tags |= {TAG_OVERRIDE + key: json.dumps(value) for key, value in overrides.items()}
+        run = self.client.create_run(parent.info.experiment_id, run_name=name, tags=tags)
         params_list = [Param(k, _param(v)) for k, v in params.items()]
         for start in range(0, len(params_list), 100):
             self.client.log_batch(run.info.run_id, params=params_list[start : start + 100])
@@ -342,6 +376,18 @@ class Tracker:
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         self.client.log_batch(run_id, tags=[RunTag(k, str(v)[:MAX_TAG_LENGTH]) for k, v in tags.items()])
+
+    def record_provenance(self, run_id: str, provenance) -> None:
+        """The code (version, commit, uncommitted changes) and package versions that run the trial now."""
+        tags = {TAG_CODE_VERSION: provenance.version}
+        if provenance.commit is not None:
+            tags |= {TAG_COMMIT: provenance.commit, TAG_DIRTY: str(bool(provenance.dirty)).lower()}
+        tags |= {TAG_VERSION + name: value for name, value in provenance.packages.items()}
+        self.set_tags(run_id, tags)
+
+    def record_machine(self, run_id: str, machine: Mapping[str, str]) -> None:
+        """The worker that runs the trial (cpu_model, cpus, host)."""
+        self.set_tags(run_id, {TAG_MACHINE + key: value for key, value in machine.items()})
 
     def logged_rounds(self, run_id: str) -> set[int]:
         """Rounds whose metrics are in the run (their marker was logged)."""

@@ -24,7 +24,7 @@ def test_runs_record_what_ran_and_reproduce_gives_the_identical_return(tmp_path)
         assert len(child.tags["icemlab.commit"]) == 40 and child.tags["icemlab.dirty"] in ("true", "false")
         for package in ("python", "mujoco", "gymnasium-robotics", "torch", "ray", "mlflow", "numpy"):
             assert child.tags[f"version.{package}"] == versions[package]
-        assert child.tags["icemlab.cpu_model"] and int(child.tags["icemlab.cpus"]) >= 1
+        assert child.machine["cpu_model"] and int(child.machine["cpus"]) >= 1
         recorded = json.loads(tracker.download(child.run_id, "trial.json", tmp_path / child.run_id).read_text())
         trial = next(t for t in load_sweep(sweep).trials if t.key == child.trial_key)
         assert recorded == trial.config.canonical()  # the fully resolved settings
