@@ -37,13 +37,14 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import nn
+
+from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleConfig
 
 CHECKPOINT_FORMAT = 1
 """Version of the layout written by :meth:`DynamicsEnsemble.export_state`."""
@@ -52,78 +53,6 @@ LOGVAR_AT_BOUND = 0.1
 """A predicted log-variance within this distance of a bound counts as "at the bound" in :class:`TrainStats`."""
 
 ACTIVATIONS = {"silu": F.silu, "relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
-
-
-class EnsembleConfig(BaseModel):
-    """Architecture and training of a probabilistic ensemble; defaults are Table 13 (BridgeMaze)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    ensemble_size: int = Field(5, ge=1)
-    """Number K of members (ensemble_size, Table 13)."""
-    hidden_layers: int = Field(6, ge=1)
-    """Hidden layers per member (num_layers, Table 13), each followed by the activation."""
-    hidden_size: int = Field(400, ge=1)
-    """Units per hidden layer (size, Table 13)."""
-    activation: Literal["silu", "relu", "tanh", "elu"] = "silu"
-    """Activation of the hidden layers (silu = swish, Table 13); the output layer is linear."""
-    min_logvar: float = -10.0
-    """Lower soft bound of the predicted log-variance (var_clipping_low, Table 13)."""
-    max_logvar: float = 4.0
-    """Upper soft bound of the predicted log-variance (var_clipping_high, Table 13)."""
-    learn_logvar_bounds: bool = False
-    """Train the bounds as parameters with the PETS regulariser 0.01 (sum max - sum min); D.2.1 keeps them fixed."""
-    lr: float = Field(2e-3, gt=0)
-    """Adam learning rate (Table 13)."""
-    adam_eps: float = Field(1e-8, gt=0)
-    """Adam epsilon (not in the thesis; torch's default)."""
-    batch_size: int = Field(512, ge=1)
-    """Minibatch size per member (Table 13)."""
-    weight_decay: float = Field(1e-5, ge=0)
-    """L2 decay of the weight matrices (not biases), applied by Adam (Table 13)."""
-    grad_norm: float | None = Field(2.0, gt=0)
-    """Clip each member's gradient to this L2 norm, as if it were trained alone; None: no clipping (Table 13/14)."""
-    epochs: int = Field(25, ge=1)
-    """Passes over all data per training call (Table 13)."""
-    bootstrap: bool = False
-    """Each member draws its epoch's samples with replacement (PETS' bootstrap) instead of a fresh permutation."""
-    retrain_from_scratch: bool = False
-    """Re-initialise weights and Adam state at every training call; default warm start (see the module docstring)."""
-
-    @model_validator(mode="after")
-    def _bounds_are_ordered(self) -> EnsembleConfig:
-        if not self.min_logvar < self.max_logvar:
-            raise ValueError(f"min_logvar ({self.min_logvar}) must be below max_logvar ({self.max_logvar})")
-        return self
-
-    @classmethod
-    def preset(cls, name: str, **overrides: Any) -> EnsembleConfig:
-        """A named preset (:data:`ENSEMBLE_PRESETS`) with some fields overridden."""
-        try:
-            base = ENSEMBLE_PRESETS[name]
-        except KeyError:
-            raise ValueError(f"unknown ensemble preset {name!r}; known: {', '.join(ENSEMBLE_PRESETS)}") from None
-        return cls(**(base | overrides))
-
-
-ENSEMBLE_PRESETS: dict[str, dict[str, Any]] = {
-    # Table 13.
-    "bridge_maze": dict(
-        ensemble_size=5, hidden_layers=6, hidden_size=400, activation="silu", min_logvar=-10.0, max_logvar=4.0,
-        lr=2e-3, batch_size=512, weight_decay=1e-5, grad_norm=2.0, epochs=25,
-    ),
-    # Table 14 lists only the differences to Table 13: grad_norm None, var_clipping_low -6;
-    # ensemble size, activation and var_clipping_high carry over.
-    "noisy_halfcheetah": dict(
-        ensemble_size=5, hidden_layers=4, hidden_size=200, activation="silu", min_logvar=-6.0, max_logvar=4.0,
-        lr=2e-4, batch_size=256, weight_decay=3e-5, grad_norm=None, epochs=50,
-    ),
-    # Not in the thesis: a net that trains in seconds on a two-core machine (tests, smoke runs).
-    "small": dict(
-        ensemble_size=5, hidden_layers=3, hidden_size=64, activation="silu", min_logvar=-10.0, max_logvar=4.0,
-        lr=1e-3, batch_size=256, weight_decay=1e-5, grad_norm=2.0, epochs=5,
-    ),
-}
 
 
 class Transitions(NamedTuple):

@@ -32,13 +32,12 @@ Uncertainties, per state dimension:
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 
 from workers.dynamics.ensemble import DynamicsEnsemble
-
-MeanPropagation = Literal["none", "per_member", "shared"]
+from workers.dynamics.settings import MeanPropagation
 
 
 class Propagation(NamedTuple):
