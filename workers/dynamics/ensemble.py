@@ -33,6 +33,7 @@ Reading of the thesis where it is silent (see also :class:`EnsembleConfig`):
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import time
@@ -44,7 +45,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleConfig
+from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleConfig  # noqa: F401 (re-exported)
 
 CHECKPOINT_FORMAT = 1
 """Version of the layout written by :meth:`DynamicsEnsemble.export_state`."""
@@ -226,9 +227,10 @@ class DynamicsEnsemble:
         """Fit the input normalisation (use_input_normalization, Table 13) to a dataset."""
         inputs, _ = self._inputs_targets(data)
         std = inputs.std(dim=0, unbiased=False)
-        # Constant inputs (e.g. a quaternion that never rotates) would divide by zero.
+        # Constant inputs (e.g. a quaternion that never rotates) would divide by (almost) zero.
+        threshold = max(self.config.input_std_threshold, 1e-6)
         self.net.input_mean.copy_(inputs.mean(dim=0))
-        self.net.input_std.copy_(torch.where(std < 1e-6, torch.ones_like(std), std))
+        self.net.input_std.copy_(torch.where(std < threshold, torch.ones_like(std), std))
 
     # ------------------------------------------------------------ training
     def _clip_per_member(self) -> None:
@@ -384,17 +386,59 @@ class DynamicsEnsemble:
         model.import_state(arrays, meta)
         return model
 
-    def save(self, path: str | Path) -> None:
-        """Write an ``.npz`` checkpoint; metadata is a JSON string stored as bytes (loads with allow_pickle=False)."""
-        arrays, meta = self.export_state()
-        meta_bytes = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        with open(path, "wb") as handle:
-            np.savez(handle, __meta__=meta_bytes, **arrays)
+    def export_weights(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Weights and input normaliser without the optimiser state: what planning needs (a quarter of the bytes).
+
+        :meth:`from_state` rebuilds a model from it (with a fresh optimiser).
+        """
+        arrays = {f"net.{name}": t.detach().cpu().numpy().copy() for name, t in self.net.state_dict().items()}
+        meta = {
+            "format": CHECKPOINT_FORMAT,
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "config": self.config.model_dump(),
+            "seed": self.seed,
+            "weights_version": self.weights_version,
+            "adam_steps": {},
+        }
+        return arrays, meta
+
+    def to_bytes(self, weights_only: bool = False) -> bytes:
+        """The bytes of an ``.npz`` checkpoint (see :meth:`save`)."""
+        arrays, meta = self.export_weights() if weights_only else self.export_state()
+        return npz_bytes(arrays, meta)
+
+    def save(self, path: str | Path, weights_only: bool = False) -> None:
+        """Write an ``.npz`` checkpoint; metadata is a JSON string stored as bytes (loads with allow_pickle=False).
+
+        ``weights_only`` leaves the Adam state out. Load either kind with
+        ``DynamicsEnsemble.load(path)``.
+        """
+        Path(path).write_bytes(self.to_bytes(weights_only))
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> DynamicsEnsemble:
+        """A model from the bytes of an ``.npz`` checkpoint, without unpickling anything."""
+        return cls.from_state(*read_npz(io.BytesIO(data)))
 
     @classmethod
     def load(cls, path: str | Path) -> DynamicsEnsemble:
-        """Read a checkpoint written by :meth:`save`, without unpickling anything."""
-        with np.load(path, allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in archive.files if name != "__meta__"}
-            meta = json.loads(archive["__meta__"].tobytes().decode())
-        return cls.from_state(arrays, meta)
+        """Read a checkpoint written by :meth:`save` (or an ``mbrl`` run's ``models/*.npz``), without unpickling."""
+        return cls.from_state(*read_npz(path))
+
+
+def npz_bytes(arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> bytes:
+    """An ensemble checkpoint archive: the arrays plus the JSON metadata as the uint8 member ``__meta__``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
+    return buffer.getvalue()
+
+
+def read_npz(source: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """(arrays, metadata) of an ensemble checkpoint archive (a path or a file object); pickles are refused."""
+    with np.load(source, allow_pickle=False) as archive:
+        if "__meta__" not in archive.files:
+            raise ValueError("not an ensemble checkpoint (no __meta__ member)")
+        arrays = {name: archive[name] for name in archive.files if name != "__meta__"}
+        meta = json.loads(archive["__meta__"].tobytes().decode())
+    return arrays, meta

@@ -56,6 +56,10 @@ class EnsembleConfig(BaseModel):
     """Passes over all data per training call (Table 13)."""
     bootstrap: bool = False
     """Each member draws its epoch's samples with replacement (PETS' bootstrap) instead of a fresh permutation."""
+    input_std_threshold: float = Field(1e-3, ge=0)
+    """Input dimensions whose training-data std is below this are centred but not scaled (std taken as 1).
+    Not in the thesis: a near-constant input (the quaternion of a cube that rarely tips) would otherwise
+    turn a small drift during planning into hundreds of standard deviations and the rollout diverges."""
     retrain_from_scratch: bool = False
     """Re-initialise weights and Adam state at every training call; default warm start (see the module docstring)."""
 

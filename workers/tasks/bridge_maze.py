@@ -218,6 +218,8 @@ class BridgeMaze(ModelBasedTask):
     ensemble_preset = "bridge_maze"
     colored_noise_beta = 2.0  # Table 15
     has_success = True
+    map_rectangles = WALKWAY
+    coverage_range = COVERAGE_RANGE
     description = "cube over three bridges above lava, wind on the middle one (RAZER, App. D.4)"
 
     def __init__(self, **options: Any):

@@ -52,6 +52,12 @@ class ModelBasedTask(ABC):
     description: ClassVar[str] = ""
     """One line for listings."""
 
+    planner_defaults: ClassVar[dict[str, Any]] = {}
+    """The task's differences to Table 15's planner settings (PlannerConfig fields), e.g. Table 16."""
+    map_rectangles: ClassVar[tuple] = ()
+    """((x0, x1), (y0, y1)) rectangles drawn under the visited-state scatter (e.g. BridgeMaze's walkways)."""
+    coverage_range: ClassVar[tuple | None] = None
+    """((x0, x1), (y0, y1)) extent of the visited-state plane, if the task has one."""
     has_success: ClassVar[bool] = False
     """Whether :meth:`episode_metrics` reports ``success``."""
 

@@ -129,6 +129,7 @@ class NoisyHalfCheetah(ModelBasedTask):
     action_dim = 6
     ensemble_preset = "noisy_halfcheetah"
     colored_noise_beta = 0.25  # Table 16
+    planner_defaults = {"population": 120, "iterations": 4}  # Table 16: num_simulated_trajectories, opt_iterations
     description = "HalfCheetah with Gaussian noise above velocity 6 and a ceiling at 0.3 (RAZER, App. D.4)"
 
     def __init__(self, **options: Any):
