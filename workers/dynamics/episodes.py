@@ -183,7 +183,8 @@ class PlanningWorker:
 
         from workers.tasks import make_task
 
-        torch.set_num_threads(max(1, int(cpus)))
+        self.threads = max(1, int(cpus))
+        torch.set_num_threads(self.threads)
         self.task = make_task(task_name, task_options)
         self.env = self.task.make_env()
         self.planner_config = PlannerConfig(**planner)
@@ -202,6 +203,9 @@ class PlanningWorker:
 
     def run_episode(self, weights, job: EpisodeJob, on_step=None) -> EpisodeOutcome:
         """Run ``job``: a colored-noise episode (``job.razer`` None) or one planned on ``weights``."""
+        import torch
+
+        torch.set_num_threads(self.threads)  # a host process (the runner) may have set its own count since
         if job.razer is None:
             return run_random_episode(self.task, self.env, job.seed, self.random_beta, self.random_scale)
         razer = RazerSettings(**job.razer)

@@ -325,7 +325,7 @@ class MbrlProgram(Program):
     metrics = {
         "episode_return": "final_return",
         "success": "final_success_rate",
-        "coverage": "coverage",
+        "coverage": "final_coverage",
         "frozen_success": "frozen_best_success_rate",
     }
     label_paths = {"preset": ("model.preset",)}
@@ -454,12 +454,19 @@ class MbrlProgram(Program):
             kwargs = dict(
                 obs_dim=task.observation_dim, action_dim=task.action_dim, config=config, seed=trial.seed, cpus=unit_cpus
             )
-            roles.append(RoleSpec("trainer", EnsembleTrainer, 1, unit_cpus, kwargs, stateful=True))
+            # The trainer and the runner take turns (a round plans, then trains): they share one unit of CPUs,
+            # half each in Ray's accounting; the trainer trains with the unit's threads while the runner waits.
+            roles.append(RoleSpec("trainer", EnsembleTrainer, 1, unit_cpus / 2, kwargs, stateful=True))
         # The runner plans with a co-located worker; further planning workers are the role's actors.
         remote = max(0, counts.get("planner", 1) - 1)
         if remote:
             roles.append(RoleSpec("planner", PlanningWorker, remote, unit_cpus, cls._planner_kwargs(trial, unit_cpus)))
         return roles
+
+    @classmethod
+    def runner_cpus(cls, trial: TrialSpec, unit_cpus: int) -> float:
+        """Half a unit when there is a trainer to take turns with (see roles_for), else a whole one."""
+        return unit_cpus / 2 if cls.trains(trial.settings) else unit_cpus
 
     @classmethod
     def _planner_kwargs(cls, trial: TrialSpec, cpus: float) -> dict[str, Any]:
@@ -496,7 +503,8 @@ class MbrlProgram(Program):
 
         self.settings = trial.settings
         self.task = make_task(trial.task, self.settings.task_options)
-        self.local = PlanningWorker(**self._planner_kwargs(trial, cpus))
+        # The co-located worker plans with the runner's CPUs (at least one thread).
+        self.local = PlanningWorker(**self._planner_kwargs(trial, max(1, int(cpus))))
         self.trainer = roles.get("trainer")
         self.remote = roles.get("planner")
         self.buffer = EpisodeBuffer()
@@ -558,7 +566,8 @@ class MbrlProgram(Program):
             metrics, artifacts = self._iteration(index)
         else:
             metrics, artifacts = self._frozen_round(index - self.training_rounds)
-        metrics["round_seconds"] = time.perf_counter() - started
+        seconds = time.perf_counter() - started
+        metrics["round_seconds" if index < self.training_rounds else "frozen/round_seconds"] = seconds
         done = index + 1 >= self.total_rounds()
         step = index if index < self.training_rounds else index - self.training_rounds
         return RoundReport(
@@ -704,7 +713,8 @@ class MbrlProgram(Program):
         )
 
     def _summary(self) -> dict[str, float]:
-        summary: dict[str, float] = {"dataset_size": float(self.buffer.steps)}
+        # Summary keys differ from the rounds' metric keys: both are logged to one run (the summary at step 0).
+        summary: dict[str, float] = {"final_dataset_size": float(self.buffer.steps)}
         returns = self.history["return"]
         if returns:
             window = slice(-min(5, len(returns)), None)
@@ -715,7 +725,7 @@ class MbrlProgram(Program):
                 summary["final_success_rate"] = float(np.mean(successes))
         grid = self._coverage_grid()
         if grid is not None:
-            summary["coverage"] = float(np.mean(grid))
+            summary["final_coverage"] = float(np.mean(grid))
         best = None
         for name, result in self.frozen_results.items():
             for key, value in result.items():
@@ -733,7 +743,8 @@ class MbrlProgram(Program):
             "buffer": self.buffer.to_tree(),
             "episode_rounds": np.array(self.episode_rounds, dtype=np.int64),
             "history": {k: np.array(v, dtype=np.float64) for k, v in self.history.items()},
-            "frozen": {name: dict(result) for name, result in self.frozen_results.items()},
+            # Result keys hold '/' (cost/c), which checkpoint paths reserve: rows go in as JSON pairs.
+            "frozen": [[name, [[k, v] for k, v in result.items()]] for name, result in self.frozen_results.items()],
         }
         if self.trainer is not None:
             state["trainer"] = self.trainer.submit(0, "state_dict").result()
@@ -747,7 +758,7 @@ class MbrlProgram(Program):
         self.buffer = EpisodeBuffer.from_tree(state["buffer"])
         self.episode_rounds = [int(r) for r in np.asarray(state["episode_rounds"])]
         self.history = {k: [float(x) for x in np.asarray(v)] for k, v in state["history"].items()}
-        self.frozen_results = {name: {k: float(v) for k, v in result.items()} for name, result in (state.get("frozen") or {}).items()}
+        self.frozen_results = {name: {k: float(v) for k, v in pairs} for name, pairs in state.get("frozen") or []}
         if "trainer" in state:
             self.trainer.submit(0, "load_state_dict", state["trainer"]).result()
             self.weights = self.trainer.submit(0, "weights").result()
