@@ -32,8 +32,9 @@ from workers.planning import CEMPlanner, PlannerConfig
 from workers.planning.icem import CostBatch
 from workers.planning.noise import colored_noise
 
-COST_TERMS = ("c", "c_A", "c_E", "c_S")
-"""The cost terms of Alg. 5 line 7 whose means over the executed plans are reported."""
+COST_TERMS = ("c", "c_A", "c_E", "c_S", "u_A", "u_E")
+"""The cost terms of Alg. 5 line 7 whose means over the executed plans are reported, and the unweighted
+uncertainty sums u_A = sum_t U(Var_A), u_E = sum_t U(Var_E) (for choosing w_A, w_E)."""
 
 DIVERGED_COST = 1e9
 """Cost of a sequence whose predicted rollout diverged (non-finite cost): ranked last, yet the planner still
@@ -123,7 +124,8 @@ def run_model_episode(
         result = planner.plan(cost_function)
         seconds.append(time.perf_counter() - started)
         for name in COST_TERMS:
-            terms[name].append(result.components.get(name, 0.0))
+            if name in result.components:
+                terms[name].append(result.components[name])
         observation, reward, terminated, truncated, info = env.step(task.env_action(result.action))
         observation = np.asarray(observation, dtype=np.float64)
         recorder.add(result.action, reward, observation)
@@ -140,7 +142,7 @@ def run_model_episode(
     metrics["diverged_fraction"] = diverged[0] / max(diverged[1], 1)
     if razer.safety_boxes and "safety_violations" not in metrics:
         metrics["safety_violations"] = float(count_in_boxes(trajectory.observations[1:], razer))
-    metrics |= {f"cost/{name}": float(np.mean(values)) for name, values in terms.items()}
+    metrics |= {f"cost/{name}": float(np.mean(values)) for name, values in terms.items() if values}
     return EpisodeOutcome(trajectory, metrics, model.weights_version)
 
 

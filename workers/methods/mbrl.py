@@ -266,7 +266,10 @@ RANDOM, ITERATION, FROZEN, TRAIN = 1, 2, 3, 4
 def read_model_meta(path: str) -> dict[str, Any]:
     """The metadata of an ensemble checkpoint (shapes, config), without loading torch."""
     import json
+    import zipfile
 
+    if not zipfile.is_zipfile(path):
+        raise ValueError("not an .npz archive")
     with np.load(path, allow_pickle=False) as archive:
         if "__meta__" not in archive.files:
             raise ValueError("not an ensemble checkpoint (no __meta__ member)")
