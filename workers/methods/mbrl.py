@@ -523,7 +523,8 @@ class MbrlProgram(Program):
     def _run_episodes(self, weights, jobs: list, label: str) -> list:
         """Run ``jobs`` on the co-located worker and the planner actors, all reading one weights reference."""
         workers = 1 + (self.remote.size if self.remote is not None else 0)
-        shared = self.remote.share(weights) if (self.remote is not None and weights is not None) else weights
+        fans_out = workers > 1 and len(jobs) > 1
+        shared = self.remote.share(weights) if (fans_out and weights is not None) else weights
         pending = {}
         for index, job in enumerate(jobs):
             member = index % workers
