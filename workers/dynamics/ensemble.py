@@ -47,7 +47,8 @@ from torch import nn
 
 from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleConfig  # noqa: F401 (re-exported)
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
+"""2: the state bounds of the propagation clamp (EnsembleConfig.state_margin) are part of the weights."""
 """Version of the layout written by :meth:`DynamicsEnsemble.export_state`."""
 
 LOGVAR_AT_BOUND = 0.1
@@ -142,6 +143,9 @@ class EnsembleMLP(nn.Module):
             self.register_buffer("max_logvar", bounds[1])
         self.register_buffer("input_mean", torch.zeros(in_dim))
         self.register_buffer("input_std", torch.ones(in_dim))
+        # Where propagated states are clamped (fit to the training data with the normaliser; +-inf: nowhere).
+        self.register_buffer("state_low", torch.full((out_dim,), -math.inf))
+        self.register_buffer("state_high", torch.full((out_dim,), math.inf))
         self.out_dim = out_dim
         self.layer_sizes = sizes
 
@@ -231,6 +235,18 @@ class DynamicsEnsemble:
         threshold = max(self.config.input_std_threshold, 1e-6)
         self.net.input_mean.copy_(inputs.mean(dim=0))
         self.net.input_std.copy_(torch.where(std < threshold, torch.ones_like(std), std))
+        if self.config.state_margin is not None:
+            states = torch.cat([inputs[:, : self.obs_dim], torch.as_tensor(data.next_observations, dtype=torch.float32)])
+            low, high = states.min(dim=0).values, states.max(dim=0).values
+            margin = self.config.state_margin * (high - low)
+            self.net.state_low.copy_(low - margin)
+            self.net.state_high.copy_(high + margin)
+
+    def clamp_states(self, states: torch.Tensor) -> torch.Tensor:
+        """States clamped into the widened range of the training data (EnsembleConfig.state_margin)."""
+        if self.config.state_margin is None:
+            return states
+        return torch.clamp(states, self.net.state_low, self.net.state_high)
 
     # ------------------------------------------------------------ training
     def _clip_per_member(self) -> None:

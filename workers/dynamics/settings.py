@@ -60,6 +60,11 @@ class EnsembleConfig(BaseModel):
     """Input dimensions whose training-data std is below this are centred but not scaled (std taken as 1).
     Not in the thesis: a near-constant input (the quaternion of a cube that rarely tips) would otherwise
     turn a small drift during planning into hundreds of standard deviations and the rollout diverges."""
+    state_margin: float | None = Field(0.25, ge=0)
+    """Propagated states (particles and means) are clamped to the range of the training data's states, widened
+    by this fraction of the range on each side; None: no clamp. Not in the thesis: a model barely trained
+    on a few episodes extrapolates linearly far from its data, and 30 compounded steps then grow without
+    bound (seen on BridgeMaze: 1e7 after 30 steps, then inf), which leaves every sequence the same cost."""
     retrain_from_scratch: bool = False
     """Re-initialise weights and Adam state at every training call; default warm start (see the module docstring)."""
 
