@@ -7,7 +7,6 @@ MLflow, real faults) and the smoke sweep through the CLI are marked slow.
 
 from __future__ import annotations
 
-import io
 import math
 from pathlib import Path
 from typing import Any
@@ -421,3 +420,154 @@ def test_smoke_sweep_runs_through_the_cli(tmp_path):
     assert "frozen/pets/success_rate" in child.metrics and "final_coverage" in child.metrics
     assert {"models", "plots", "checkpoints"} <= set(tracker.list_files(child.run_id))
     assert "frozen_success.png" in tracker.list_files(parent.run_id)
+
+
+# ------------------------------------------------- service faults (slow)
+FAULT_BASE: dict[str, Any] = {
+    "task_options": {"episode_length": 15},
+    # Many small minibatches: a training call lasts a few seconds, long enough to be killed in.
+    "model": {"preset": "small", "hidden_size": 16, "hidden_layers": 2, "epochs": 400, "batch_size": 8},
+    "planner": {"population": 12, "iterations": 2, "horizon": 4, "elites": 4},
+    "razer": {"epistemic_weight": 0.05},
+    "random_episodes": 1,
+    "iterations": 3,
+}
+
+
+def fault_sweep(directory: Path, name: str, **changes: Any) -> Path:
+    sweep = {
+        "name": name,
+        "task": "bridge_maze",
+        "method": "mbrl",
+        "base": FAULT_BASE | changes,
+        "seeds": [0],
+        # One thread everywhere, as in run_locally: results can be compared bit for bit.
+        "resources": {"threads_per_worker": 1},
+    }
+    path = directory / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(sweep, sort_keys=False))
+    return path
+
+
+def uninterrupted(sweep: Path) -> list:
+    from orchestrator.sweep import load_sweep
+    from workers.methods import run_locally
+
+    return run_locally(MbrlProgram, load_sweep(sweep).trials[0].config.spec())
+
+
+def history(tracker, run_id: str, key: str) -> list[tuple[int, float]]:
+    return sorted(tracker.metric_history(run_id, key))
+
+
+@pytest.fixture
+def local_ray():
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.mark.slow
+def test_killed_trainer_mid_training_resumes_from_the_last_checkpoint(tmp_path, local_ray):
+    """SIGKILL the EnsembleTrainer inside a training call: the round is lost, the loop goes on from the last
+    checkpoint (weights, Adam state and dataset restored) and ends as an uninterrupted run."""
+    import os
+    import signal
+    import threading
+    import time
+
+    import ray
+    from helpers import sweep_runs, wait_for
+
+    from orchestrator.scheduler import SweepScheduler
+    from orchestrator.sweep import load_sweep
+    from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+
+    sweep = fault_sweep(tmp_path, "trainer_kill")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    killed = {}
+
+    def kill_trainer_while_it_trains():
+        def planning_an_iteration():
+            active = scheduler._active
+            if active and active[0].phase == "running" and active[0].round_index >= 2:
+                if active[0].progress.get("text", "").startswith("iteration"):
+                    return active[0]
+            return None
+
+        attempt = wait_for(planning_an_iteration, timeout=300, interval=0.05, what="an iteration being planned")
+        trainer = attempt.group.workers["trainer"][0]
+        pid = ray.get(trainer.pid.remote(), timeout=60)  # idle while the runner plans
+        wait_for(lambda: "training" in attempt.progress.get("text", ""), timeout=300, interval=0.02, what="training")
+        time.sleep(0.3)
+        os.kill(pid, signal.SIGKILL)
+        killed.update(pid=pid, round=attempt.round_index)
+
+    killer = threading.Thread(target=kill_trainer_while_it_trains, daemon=True)
+    killer.start()
+    outcome = scheduler.run()
+    killer.join(timeout=5)
+    assert killed, "the trainer was never killed"
+    assert (outcome.finished, outcome.failed) == (1, 0)
+
+    _, (child,) = sweep_runs(tracker.uri, "trainer_kill")
+    assert child.status == FINISHED and child.attempts == 2
+    assert child.metrics["failures/lost_process"] == 1.0
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
+    assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
+    expected = uninterrupted(sweep)
+    for key in ("dataset_size", "episode_return", "train_nll", "held_out_nll"):
+        got = [v for _, v in history(tracker, child.run_id, key)]
+        assert got == [r.metrics[key] for r in expected if key in r.metrics], key
+
+
+@pytest.mark.slow
+def test_driver_sigkill_then_resume_continues_with_the_same_dataset(tmp_path):
+    """Kill the driver mid-trial; --resume continues from the last completed iteration, nothing twice."""
+    import os
+    import signal
+    from collections import Counter
+
+    from helpers import kill_group, start_cli, sweep_runs, wait_for
+
+    from orchestrator.tracking import FINISHED, RUNNING, Tracker, default_tracking_uri
+
+    sweep = fault_sweep(tmp_path, "crash", iterations=4, model={**FAULT_BASE["model"], "epochs": 20})
+    uri = default_tracking_uri(tmp_path)
+    tracker = Tracker(uri)
+    driver = start_cli("run", str(sweep), "--quiet", cwd=tmp_path)
+    try:
+
+        def two_rounds_in():
+            _, children = sweep_runs(uri, "crash")
+            running = [c for c in children if c.status == RUNNING]
+            return running and len(tracker.logged_rounds(running[0].run_id)) >= 2
+
+        wait_for(two_rounds_in, timeout=300, what="a trial two rounds in")
+        os.kill(driver.pid, signal.SIGKILL)  # the driver only; its Ray processes are orphaned
+        driver.wait(timeout=30)
+    finally:
+        kill_group(driver)
+    _, (before,) = sweep_runs(uri, "crash")
+    assert before.status == RUNNING
+    done_before = len(tracker.logged_rounds(before.run_id))
+
+    result = cli("run", str(sweep), "--resume", "--quiet", cwd=tmp_path, timeout=600)
+    assert result.returncode == 0, result.stderr
+    _, (after,) = sweep_runs(uri, "crash")
+    assert after.run_id == before.run_id and after.status == FINISHED and after.attempts == 2
+    assert [s for s, _ in history(tracker, after.run_id, "icemlab.round")] == list(range(5))
+    for key in ("dataset_size", "episode_return", "weights_version"):
+        steps = [s for s, _ in history(tracker, after.run_id, key)]
+        assert not [s for s, n in Counter(steps).items() if n > 1], key  # no step logged twice
+    expected = uninterrupted(sweep)
+    # The dataset after every iteration is the uninterrupted run's: the resumed rounds start from the same one.
+    assert [v for _, v in history(tracker, after.run_id, "dataset_size")] == [r.metrics["dataset_size"] for r in expected]
+    assert [v for _, v in history(tracker, after.run_id, "episode_return")] == [
+        r.metrics["episode_return"] for r in expected
+    ]
+    assert after.metrics["final_return"] == expected[-1].summary["final_return"]
+    assert 2 <= done_before < 5
