@@ -571,3 +571,26 @@ def test_driver_sigkill_then_resume_continues_with_the_same_dataset(tmp_path):
     ]
     assert after.metrics["final_return"] == expected[-1].summary["final_return"]
     assert 2 <= done_before < 5
+
+
+def test_trainer_holds_out_the_newest_episode_before_training_on_it():
+    from workers.dynamics.ensemble import Transitions
+    from workers.dynamics.settings import EnsembleConfig
+    from workers.dynamics.trainer import EnsembleTrainer
+
+    rng = np.random.default_rng(0)
+    obs, act = rng.normal(size=(60, 3)), rng.uniform(-1, 1, size=(60, 2))
+    data = Transitions(obs, act, obs + 0.1 * act[:, [0, 1, 0]])
+    config = EnsembleConfig.preset("small", hidden_size=8, epochs=3).model_dump()
+    trainer = EnsembleTrainer(3, 2, config, seed=0)
+    first = trainer.train(Transitions(*(x[:40] for x in data)), 40, seed=1)
+    assert "held_out_nll" not in first.metrics and first.weights.version == 1  # untrained: nothing to hold out
+    before = first.weights.model().evaluate(Transitions(*(x[40:] for x in data)))
+    second = trainer.train(data, 40, seed=2)
+    assert (second.metrics["held_out_nll"], second.metrics["held_out_mse"]) == pytest.approx(before[:2], rel=1e-6)
+    assert second.metrics["weights_version"] == 2 and second.weights.version == 2
+    # State out, state in: a fresh trainer continues identically (weights, Adam moments, version).
+    copy = EnsembleTrainer(3, 2, config, seed=5)
+    copy.load_state_dict(checkpoint.from_bytes(checkpoint.to_bytes(trainer.state_dict())))
+    ours, theirs = copy.train(data, 40, seed=3).metrics, trainer.train(data, 40, seed=3).metrics
+    assert {k: v for k, v in ours.items() if k != "train_seconds"} == {k: v for k, v in theirs.items() if k != "train_seconds"}
