@@ -594,3 +594,31 @@ def test_trainer_holds_out_the_newest_episode_before_training_on_it():
     copy.load_state_dict(checkpoint.from_bytes(checkpoint.to_bytes(trainer.state_dict())))
     ours, theirs = copy.train(data, 40, seed=3).metrics, trainer.train(data, 40, seed=3).metrics
     assert {k: v for k, v in ours.items() if k != "train_seconds"} == {k: v for k, v in theirs.items() if k != "train_seconds"}
+
+
+@pytest.mark.slow
+def test_noisy_halfcheetah_reduced_run_logs_return_and_violation_curves():
+    """Noisy-HalfCheetah (Fig. 36), cut down: the loop with the aleatoric penalty and the ceiling's safety term."""
+    trial = tiny_trial(
+        task="noisy_halfcheetah",
+        task_options={"episode_length": 30, "velocity_threshold": 0.5},
+        model={"preset": "small", "hidden_size": 32, "epochs": 5},
+        planner={"population": 24, "iterations": 2, "horizon": 8},
+        razer={"aleatoric_weight": 0.05, "safety_weight": 50.0, "safety_delta": 0.05},
+        random_episodes=1,
+        iterations=3,
+        frozen={"episodes": 0},
+    )
+    assert [box.dims for box in trial.settings.razer.safety_boxes] == [(0,)]  # the ceiling, from the task
+    program = build(trial)
+    try:
+        reports = run_rounds(program, range(program.total_rounds()))
+    finally:
+        program.close()
+    iterations = [r.metrics for r in reports[1:]]
+    for metrics in iterations:
+        for key in ("episode_return", "safety_violations", "ceiling_violations", "noisy_steps", "cost/c_S", "cost/c_A"):
+            assert math.isfinite(metrics[key]), key
+        assert metrics["steps"] == 30 and metrics["cost/c_A"] > 0
+    assert "coverage" not in iterations[0]  # no coverage grid for this task
+    assert reports[-1].summary["final_return"] == pytest.approx(np.mean([m["episode_return"] for m in iterations]))
