@@ -104,7 +104,9 @@ def success_figure(summary: Any):
         for p in points:
             if p.pets and "success_rate" in p.values:
                 mean, sem, n = p.values["success_rate"]
-                success_axis.axhline(mean, linestyle="--", color=color or "tab:red", label=f"PETS {label} (n={n})".strip())
+                success_axis.axhline(
+                    mean, linestyle="--", color=color or "tab:red", label=f"PETS {label} (n={n})".strip()
+                )
                 if sem:
                     success_axis.axhspan(mean - sem, mean + sem, color=color or "tab:red", alpha=0.1)
                 if "mean_return" in p.values:
@@ -149,7 +151,9 @@ def drop_rate_figure(summary: Any, option: str | None = None):
             key_used = key_used or key
             mean, sem, _ = point.values[key]
             rest = " ".join(f"{k}={v}" for k, v in group.setting.items() if k != option)
-            lines[" ".join(filter(None, [point.row, group.variant or "", rest]))].append((group.setting[option], mean, sem))
+            lines[" ".join(filter(None, [point.row, group.variant or "", rest]))].append(
+                (group.setting[option], mean, sem)
+            )
     if not lines:
         return None
     figure, axis = plt.subplots(figsize=(6, 4))
@@ -215,7 +219,11 @@ def coverage_curves_figure(curves: Mapping[str, Sequence[Sequence[tuple[int, flo
 def write_files(summary: Any, directory: Path) -> list[Path]:
     """The mbrl plots that fit the sweep (frozen_success.png, failure_rate.png, coverage.png) in ``directory``."""
     paths = []
-    for name, make in (("frozen_success", success_figure), ("failure_rate", drop_rate_figure), ("coverage", coverage_figure)):
+    for name, make in (
+        ("frozen_success", success_figure),
+        ("failure_rate", drop_rate_figure),
+        ("coverage", coverage_figure),
+    ):
         figure = make(summary)
         if figure is None:
             continue

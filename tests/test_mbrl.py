@@ -63,7 +63,9 @@ class RecordingGroup(LocalRoleGroup):
 
 def build(trial: TrialSpec, planners: int = 1) -> MbrlProgram:
     specs = MbrlProgram.roles_for(trial, 1, {"planner": planners})
-    roles = {spec.name: RecordingGroup(spec.name, [spec.worker(**spec.kwargs) for _ in range(spec.count)]) for spec in specs}
+    roles = {
+        spec.name: RecordingGroup(spec.name, [spec.worker(**spec.kwargs) for _ in range(spec.count)]) for spec in specs
+    }
     return MbrlProgram(trial, roles, 1)
 
 
@@ -90,7 +92,9 @@ def test_resolution_fills_the_thesis_tables_per_task():
 
 
 def test_frozen_rows_are_pets_then_razer_by_weight():
-    settings = MbrlSettings(razer={"epistemic_weight": 0.05, "safety_weight": 0.0}, frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0]})
+    settings = MbrlSettings(
+        razer={"epistemic_weight": 0.05, "safety_weight": 0.0}, frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0]}
+    )
     rows = frozen_rows(settings)
     assert [name for name, _ in rows] == ["pets", "razer_wA_0.1", "razer_wA_1"]
     pets = rows[0][1]
@@ -124,8 +128,22 @@ def test_the_loop_collects_trains_and_evaluates(tiny_run):
     for index, metrics in ((1, first), (2, second)):
         assert metrics["planned_with_version"] == index and metrics["weights_version"] == index + 1
         assert metrics["dataset_size"] == 20 + 10 * index
-        for key in ("train_nll", "train_mse", "held_out_nll", "held_out_mse", "logvar_at_bound", "train_seconds",
-                    "episode_return", "success", "falls", "coverage", "cost/c", "cost/c_A", "cost/c_E", "cost/c_S"):
+        for key in (
+            "train_nll",
+            "train_mse",
+            "held_out_nll",
+            "held_out_mse",
+            "logvar_at_bound",
+            "train_seconds",
+            "episode_return",
+            "success",
+            "falls",
+            "coverage",
+            "cost/c",
+            "cost/c_A",
+            "cost/c_E",
+            "cost/c_S",
+        ):
             assert math.isfinite(metrics[key]), key
         assert metrics["cost/c_E"] < 0 < metrics["cost/u_E"]  # w_E = 0.05: a bonus
         assert metrics["cost/c_A"] == 0.0  # w_A = 0 during training
@@ -162,7 +180,9 @@ def test_rows_play_the_same_episode_seeds():
     program = build(trial, planners=2)
     local_jobs = []
     run_local = program.local.run_episode
-    program.local.run_episode = lambda weights, job, on_step=None: local_jobs.append(job) or run_local(weights, job, on_step)
+    program.local.run_episode = lambda weights, job, on_step=None: (
+        local_jobs.append(job) or run_local(weights, job, on_step)
+    )
     try:
         run_rounds(program, range(program.total_rounds()))
         remote_jobs = [args[1] for _, method, args in program.remote.calls if method == "run_episode"]
@@ -269,7 +289,10 @@ BAD_INPUT = {
         "state dimension 10",
     ),
     "negative_weight": (
-        "base:\n  razer:\n    aleatoric_weight: -0.5\n", 6, "base.razer.aleatoric_weight", "greater than or equal to 0"
+        "base:\n  razer:\n    aleatoric_weight: -0.5\n",
+        6,
+        "base.razer.aleatoric_weight",
+        "greater than or equal to 0",
     ),
     "negative_swept_weight": (
         "parameters:\n  razer.epistemic_weight:\n    values: [0.05, -1]\n",
@@ -286,7 +309,12 @@ BAD_INPUT = {
         ">= 0",
     ),
     "safety_without_box": ("base:\n  razer:\n    safety_weight: 5\n", 6, "razer.safety_weight", "has none of its own"),
-    "unknown_role": ("resources:\n  workers:\n    trainers: 2\n", 6, "resources.workers.trainers", "did you mean 'trainer'"),
+    "unknown_role": (
+        "resources:\n  workers:\n    trainers: 2\n",
+        6,
+        "resources.workers.trainers",
+        "did you mean 'trainer'",
+    ),
 }
 
 
@@ -321,7 +349,9 @@ def test_a_model_file_of_another_task_is_refused(tmp_path, capsys):
 
     cheetah = DynamicsEnsemble(17, 6, EnsembleConfig.preset("small", hidden_size=8))
     cheetah.save(tmp_path / "cheetah.npz", weights_only=True)
-    sweep = write(tmp_path, "mismatch", HEADER + f"base:\n  initial_model: {tmp_path / 'cheetah.npz'}\n  random_episodes: 0\n")
+    sweep = write(
+        tmp_path, "mismatch", HEADER + f"base:\n  initial_model: {tmp_path / 'cheetah.npz'}\n  random_episodes: 0\n"
+    )
     code, err = validate(sweep, capsys)
     assert code == 2 and f"{sweep}:5: initial_model:" in err and "17-d state" in err
 
@@ -361,11 +391,18 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
 
     groups = [
         Group("bridge_maze", "mbrl", {}, None, {"task_options.wind_max": wind}, trials, 0.0, 0.0, None)
-        for wind, trials in ((10, [trial(0.6, 0.8, 0.9, 0.1), trial(0.5, 0.9, 1.0, 0.2)]), (30, [trial(0.2, 0.7, 0.9, 0.1)]))
+        for wind, trials in (
+            (10, [trial(0.6, 0.8, 0.9, 0.1), trial(0.5, 0.9, 1.0, 0.2)]),
+            (30, [trial(0.2, 0.7, 0.9, 0.1)]),
+        )
     ]
     summary = Summary(groups, "frozen_success", "frozen_best_success_rate", "max", 0)
     points = report_mbrl.frozen_points(groups[0].trials)
-    assert [(p.row, p.pets, p.aleatoric_weight) for p in points] == [("pets", True, 0.0), ("razer_wA_0.1", False, 0.1), ("razer_wA_1", False, 1.0)]
+    assert [(p.row, p.pets, p.aleatoric_weight) for p in points] == [
+        ("pets", True, 0.0),
+        ("razer_wA_0.1", False, 0.1),
+        ("razer_wA_1", False, 1.0),
+    ]
     mean, sem, n = points[1].values["success_rate"]
     assert (mean, n) == (pytest.approx(0.85), 2) and sem == pytest.approx(0.05)
     success = report_mbrl.success_figure(summary)
@@ -395,7 +432,10 @@ def test_smoke_and_paper_sweeps_validate():
     settings = paper.trials[0].config.settings
     assert settings.razer.epistemic_weight == 0.05 and settings.frozen.episodes >= 25 and settings.frozen.pets
     assert len(settings.frozen.aleatoric_weights) >= 3 and settings.model.preset == "bridge_maze"
-    assert load_sweep(ROOT / "sweeps/paper/razer_noisy_halfcheetah.yaml").trials[0].config.settings.model.preset == "noisy_halfcheetah"
+    assert (
+        load_sweep(ROOT / "sweeps/paper/razer_noisy_halfcheetah.yaml").trials[0].config.settings.model.preset
+        == "noisy_halfcheetah"
+    )
 
 
 def test_method_is_registered():
@@ -565,7 +605,9 @@ def test_driver_sigkill_then_resume_continues_with_the_same_dataset(tmp_path):
         assert not [s for s, n in Counter(steps).items() if n > 1], key  # no step logged twice
     expected = uninterrupted(sweep)
     # The dataset after every iteration is the uninterrupted run's: the resumed rounds start from the same one.
-    assert [v for _, v in history(tracker, after.run_id, "dataset_size")] == [r.metrics["dataset_size"] for r in expected]
+    assert [v for _, v in history(tracker, after.run_id, "dataset_size")] == [
+        r.metrics["dataset_size"] for r in expected
+    ]
     assert [v for _, v in history(tracker, after.run_id, "episode_return")] == [
         r.metrics["episode_return"] for r in expected
     ]
@@ -593,7 +635,9 @@ def test_trainer_holds_out_the_newest_episode_before_training_on_it():
     copy = EnsembleTrainer(3, 2, config, seed=5)
     copy.load_state_dict(checkpoint.from_bytes(checkpoint.to_bytes(trainer.state_dict())))
     ours, theirs = copy.train(data, 40, seed=3).metrics, trainer.train(data, 40, seed=3).metrics
-    assert {k: v for k, v in ours.items() if k != "train_seconds"} == {k: v for k, v in theirs.items() if k != "train_seconds"}
+    assert {k: v for k, v in ours.items() if k != "train_seconds"} == {
+        k: v for k, v in theirs.items() if k != "train_seconds"
+    }
 
 
 @pytest.mark.slow

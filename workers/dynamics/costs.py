@@ -26,7 +26,7 @@ from typing import NamedTuple
 import torch
 
 from workers.dynamics.propagation import Propagation
-from workers.dynamics.settings import MeanPropagation, RazerSettings, SafetyBox, UncertaintyReduction
+from workers.dynamics.settings import MeanPropagation, RazerSettings, SafetyBox, UncertaintyReduction  # noqa: F401
 
 TaskCost = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 """Per-transition planning cost c(s_t, a_t, s_{t+1}): (B, d), (B, d_a), (B, d) tensors -> (B,)."""

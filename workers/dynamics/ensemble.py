@@ -236,7 +236,8 @@ class DynamicsEnsemble:
         self.net.input_mean.copy_(inputs.mean(dim=0))
         self.net.input_std.copy_(torch.where(std < threshold, torch.ones_like(std), std))
         if self.config.state_margin is not None:
-            states = torch.cat([inputs[:, : self.obs_dim], torch.as_tensor(data.next_observations, dtype=torch.float32)])
+            next_states = torch.as_tensor(data.next_observations, dtype=torch.float32)
+            states = torch.cat([inputs[:, : self.obs_dim], next_states])
             low, high = states.min(dim=0).values, states.max(dim=0).values
             margin = self.config.state_margin * (high - low)
             self.net.state_low.copy_(low - margin)

@@ -87,19 +87,46 @@ class EnsembleConfig(BaseModel):
 ENSEMBLE_PRESETS: dict[str, dict[str, Any]] = {
     # Table 13.
     "bridge_maze": dict(
-        ensemble_size=5, hidden_layers=6, hidden_size=400, activation="silu", min_logvar=-10.0, max_logvar=4.0,
-        lr=2e-3, batch_size=512, weight_decay=1e-5, grad_norm=2.0, epochs=25,
+        ensemble_size=5,
+        hidden_layers=6,
+        hidden_size=400,
+        activation="silu",
+        min_logvar=-10.0,
+        max_logvar=4.0,
+        lr=2e-3,
+        batch_size=512,
+        weight_decay=1e-5,
+        grad_norm=2.0,
+        epochs=25,
     ),
     # Table 14 lists only the differences to Table 13: grad_norm None, var_clipping_low -6;
     # ensemble size, activation and var_clipping_high carry over.
     "noisy_halfcheetah": dict(
-        ensemble_size=5, hidden_layers=4, hidden_size=200, activation="silu", min_logvar=-6.0, max_logvar=4.0,
-        lr=2e-4, batch_size=256, weight_decay=3e-5, grad_norm=None, epochs=50,
+        ensemble_size=5,
+        hidden_layers=4,
+        hidden_size=200,
+        activation="silu",
+        min_logvar=-6.0,
+        max_logvar=4.0,
+        lr=2e-4,
+        batch_size=256,
+        weight_decay=3e-5,
+        grad_norm=None,
+        epochs=50,
     ),
     # Not in the thesis: a net that trains in seconds on a two-core machine (tests, smoke runs).
     "small": dict(
-        ensemble_size=5, hidden_layers=3, hidden_size=64, activation="silu", min_logvar=-10.0, max_logvar=4.0,
-        lr=1e-3, batch_size=256, weight_decay=1e-5, grad_norm=2.0, epochs=5,
+        ensemble_size=5,
+        hidden_layers=3,
+        hidden_size=64,
+        activation="silu",
+        min_logvar=-10.0,
+        max_logvar=4.0,
+        lr=1e-3,
+        batch_size=256,
+        weight_decay=1e-5,
+        grad_norm=2.0,
+        epochs=5,
     ),
 }
 

@@ -69,7 +69,7 @@ def _optional_fields(model: type[BaseModel], skip: tuple[str, ...] = ()) -> dict
     for name, info in model.model_fields.items():
         if name in skip:
             continue
-        annotation = Annotated[info.annotation, *info.metadata] if info.metadata else info.annotation
+        annotation = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
         fields[name] = (Optional[annotation], Field(None, description=info.description))  # noqa: UP045
     return fields
 
@@ -245,7 +245,9 @@ def prefixed(error: ValidationError, prefix: tuple[Any, ...]) -> ValidationError
     """The same errors, located under ``prefix``."""
     details = [
         InitErrorDetails(
-            type=PydanticCustomError("invalid", item["msg"].removeprefix("Value error, ").replace("{", "(").replace("}", ")")),
+            type=PydanticCustomError(
+                "invalid", item["msg"].removeprefix("Value error, ").replace("{", "(").replace("}", ")")
+            ),
             loc=(*prefix, *item["loc"]),
             input=item.get("input"),
         )
@@ -595,7 +597,10 @@ class MbrlProgram(Program):
             self.weights = loaded if self.trainer is None else self.trainer.submit(0, "load_weights", loaded).result()
             metrics["initial_model_version"] = float(self.weights.version)
         if settings.random_episodes:
-            jobs = [self._job(derived_seed(self.trial.seed, RANDOM, j), None, "random") for j in range(settings.random_episodes)]
+            jobs = [
+                self._job(derived_seed(self.trial.seed, RANDOM, j), None, "random")
+                for j in range(settings.random_episodes)
+            ]
             outcomes = self._run_episodes(None, jobs, "round 0: random episodes")
             for outcome in outcomes:
                 self._add(outcome.trajectory, 0)
@@ -633,7 +638,9 @@ class MbrlProgram(Program):
         }
         for key in ("success", "falls", "safety_violations", "box_drops", "planning_seconds_per_step"):
             if key in episode:
-                result[key if key in ("safety_violations", "planning_seconds_per_step") else f"{key}_rate"] = episode[key]
+                result[key if key in ("safety_violations", "planning_seconds_per_step") else f"{key}_rate"] = episode[
+                    key
+                ]
         result |= {k: v for k, v in episode.items() if k.startswith("cost/")}
         self.frozen_results[name] = result
         metrics = {f"frozen/{k}": v for k, v in result.items()}
@@ -691,7 +698,9 @@ class MbrlProgram(Program):
         every = self.settings.model_every
         if not (last or (every and index % every == 0 and index > 0)):
             return []
-        artifacts = [Artifact(f"models/model_v{self.weights.version:03d}.npz", npz_bytes(self.weights.arrays, self.weights.meta))]
+        artifacts = [
+            Artifact(f"models/model_v{self.weights.version:03d}.npz", npz_bytes(self.weights.arrays, self.weights.meta))
+        ]
         if last:
             figure = self._visited_states_png()
             if figure is not None:
@@ -753,7 +762,11 @@ class MbrlProgram(Program):
         if self.trainer is not None:
             state["trainer"] = self.trainer.submit(0, "state_dict").result()
         elif self.weights is not None:
-            state["weights"] = {"version": self.weights.version, "arrays": self.weights.arrays, "meta": self.weights.meta}
+            state["weights"] = {
+                "version": self.weights.version,
+                "arrays": self.weights.arrays,
+                "meta": self.weights.meta,
+            }
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -768,7 +781,9 @@ class MbrlProgram(Program):
             self.weights = self.trainer.submit(0, "weights").result()
         elif "weights" in state:
             stored = state["weights"]
-            self.weights = Weights(int(stored["version"]), {k: np.asarray(v) for k, v in stored["arrays"].items()}, stored["meta"])
+            self.weights = Weights(
+                int(stored["version"]), {k: np.asarray(v) for k, v in stored["arrays"].items()}, stored["meta"]
+            )
 
     def close(self) -> None:
         self.local.close()

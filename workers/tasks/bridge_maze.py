@@ -249,7 +249,7 @@ class BridgeMaze(ModelBasedTask):
     def episode_metrics(
         self, observations: np.ndarray, rewards: np.ndarray, infos: list[dict[str, Any]]
     ) -> dict[str, float]:
-        """return, success (goal crossed, never fell), failure and falls (fell), max_x, steps, coverage of this episode."""
+        """return, success (goal crossed, never fell), failure and falls (fell), max_x, steps, coverage."""
         observations = np.asarray(observations)
         fell = bool(np.any(observations[:, 2] < LAVA_Z))
         reached = bool(np.any((observations[:, 0] >= GOAL_X) & (observations[:, 2] >= LAVA_Z)))
