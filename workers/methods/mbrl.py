@@ -25,6 +25,12 @@ episode retried). As in the ``mpc`` method, the runner plans with a
 co-located worker; ``resources.workers.planner: N`` adds N - 1 actors for the
 fanned-out episodes (random and frozen ones).
 
+Artifacts: ``models/model_vNNN.npz`` (weights and normaliser, every
+``model_every`` iterations and after the last training round) loads with
+``DynamicsEnsemble.load("model_v012.npz")`` (``from workers.dynamics import
+DynamicsEnsemble``; no pickle involved), and ``plots/visited_states.png`` is
+Fig. 37b/c for tasks with a plane (BridgeMaze).
+
 Choices where the thesis is silent, each a setting: see the field docs of
 :class:`MbrlSettings`, workers/dynamics/ (ensemble, propagation, costs) and
 the task modules.
