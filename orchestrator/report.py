@@ -409,4 +409,8 @@ def write_files(summary: Summary, directory: Path, histories: Histories | None =
         paths.append(directory / "variants.png")
         figure.savefig(paths[-1], dpi=110)
         plt.close(figure)
+    if any(g.method == "mbrl" for g in summary.groups):
+        from orchestrator import report_mbrl  # chapter 5's figures (Fig. 19a/b, 37a)
+
+        paths += report_mbrl.write_files(summary, directory)
     return paths

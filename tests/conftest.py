@@ -11,8 +11,11 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 # The toy learning method of the service tests is a plugin, as a method kept outside icemlab would be;
 # Ray's worker processes inherit the variables and find it on the path.
 TESTS = os.path.dirname(os.path.abspath(__file__))
+# The checkout under test comes first: an editable install of another checkout (a git worktree's shared
+# venv) would otherwise serve the CLI subprocesses and Ray workers its own code.
+ROOT = os.path.dirname(TESTS)
 os.environ["ICEMLAB_PLUGINS"] = "toy_method"
-os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [TESTS, os.environ.get("PYTHONPATH")]))
+os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [ROOT, TESTS, os.environ.get("PYTHONPATH")]))
 
 
 @pytest.fixture(scope="session")

@@ -420,3 +420,30 @@ def test_end_to_end_bridge_maze_model_plans_with_icem():
     config = PlannerConfig(budget=20, elites=5, horizon=5).resolved(task_beta=task.colored_noise_beta)
     result = CEMPlanner(config, task.action_dim, seed=0).plan(evaluator.cost_function(data.observations[0]))
     assert result.action.shape == (2,) and np.all(np.abs(result.action) <= 1) and np.isfinite(result.best_cost)
+
+
+def test_propagated_states_stay_in_the_widened_data_range():
+    """A model that extrapolates (here: it predicts delta = 2 s) is clamped to the data's range +- 25 %."""
+    model = tiny_model(epochs=1)
+    data = toy_data(200, noise=0.0)
+    model.train(data)
+    low = np.minimum(data.observations.min(0), data.next_observations.min(0))
+    high = np.maximum(data.observations.max(0), data.next_observations.max(0))
+    np.testing.assert_allclose(model.net.state_low.numpy(), low - 0.25 * (high - low), rtol=1e-5)
+    np.testing.assert_allclose(model.net.state_high.numpy(), high + 0.25 * (high - low), rtol=1e-5)
+    growing = make_deterministic(model)
+    original = growing.net.forward
+
+    def explode(inputs):  # delta = 2 s: states triple every step, without bound
+        _, logvar = original(inputs)
+        return 2.0 * inputs[..., :3], logvar
+
+    growing.net.forward = explode
+    start = torch.tensor([1.0, -1.0, 0.5])
+    prop = petsus_propagate(growing, start, torch.zeros(2, 30, 2), particles=5, mean_propagation="per_member")
+    assert torch.isfinite(prop.particles).all() and torch.isfinite(prop.var_epistemic).all()
+    assert (prop.particles <= model.net.state_high + 1e-6).all() and (prop.particles >= model.net.state_low - 1e-6).all()
+    assert (prop.means <= model.net.state_high + 1e-6).all()
+    unclamped = tiny_model(epochs=1, state_margin=None)
+    unclamped.train(data)
+    assert torch.isinf(unclamped.net.state_high).all()  # None: no clamp

@@ -20,91 +20,16 @@ difference of RAZER is the propagated mean and the penalties).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from workers.dynamics.propagation import MeanPropagation, Propagation
+from workers.dynamics.propagation import Propagation
+from workers.dynamics.settings import MeanPropagation, RazerSettings, SafetyBox, UncertaintyReduction  # noqa: F401
 
 TaskCost = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 """Per-transition planning cost c(s_t, a_t, s_{t+1}): (B, d), (B, d_a), (B, d) tensors -> (B,)."""
-
-UncertaintyReduction = Literal["sum_sqrt", "sqrt_sum", "mean_sqrt"]
-
-
-class SafetyBox(BaseModel):
-    """An axis-aligned box violation set C = {s : low_i <= s[dims_i] <= high_i for every i} (App. D.1.3).
-
-    Unconstrained sides are None (e.g. a ceiling: low = height, high = None).
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    dims: tuple[int, ...] = Field(min_length=1)
-    """Observation dimensions the box constrains."""
-    low: tuple[float | None, ...]
-    """Lower edge per constrained dimension; None: unbounded below."""
-    high: tuple[float | None, ...]
-    """Upper edge per constrained dimension; None: unbounded above."""
-
-    @model_validator(mode="after")
-    def _edges_match_dims(self) -> SafetyBox:
-        if not len(self.low) == len(self.high) == len(self.dims):
-            raise ValueError(
-                f"a safety box needs one low and one high edge per dimension: "
-                f"{len(self.dims)} dims, {len(self.low)} low, {len(self.high)} high"
-            )
-        for dim, lo, hi in zip(self.dims, self.low, self.high):
-            if dim < 0:
-                raise ValueError(f"safety box dimension {dim} is negative")
-            if lo is not None and hi is not None and not lo < hi:
-                raise ValueError(f"safety box edge low {lo} is not below high {hi} in dimension {dim}")
-        return self
-
-    def edges(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(low, high) float tensors with -inf / inf for unbounded sides."""
-        low = torch.tensor([-math.inf if v is None else v for v in self.low])
-        high = torch.tensor([math.inf if v is None else v for v in self.high])
-        return low, high
-
-
-class RazerSettings(BaseModel):
-    """Uncertainty-aware cost settings of RAZER (section 5.3.5, App. D.1.3); all weights zero is PETS."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    aleatoric_weight: float = Field(0.0, ge=0)
-    """w_A of the aleatoric penalty (eq. 26); not published."""
-    epistemic_weight: float = Field(0.0, ge=0)
-    """w_E of the epistemic bonus (eq. 27); 0.05 for the BridgeMaze exploration run (section 5.4.2)."""
-    mean_propagation: MeanPropagation = "per_member"
-    """Mean propagation of PETSUS: per_member, shared or none (PETS); see workers/dynamics/propagation.py."""
-    uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
-    """How sqrt(Var) combines dimensions: sum of per-dim std (default), sqrt of the summed variance, mean std."""
-    uncertainty_dims: tuple[int, ...] | None = None
-    """Observation dimensions whose uncertainty counts; None: all."""
-    safety_weight: float = Field(0.0, ge=0)
-    """w_S, the penalty per step whose violation probability exceeds delta (eq. 35); 0 disables safety."""
-    safety_delta: float = Field(0.05, gt=0, lt=1)
-    """delta, the tolerated violation probability per step (eq. 35); not published (Fig. 36b varies it)."""
-    safety_boxes: tuple[SafetyBox, ...] = ()
-    """Violation sets C; a step counts once if any box's probability exceeds delta."""
-
-    @model_validator(mode="after")
-    def _consistent(self) -> RazerSettings:
-        if self.epistemic_weight > 0 and self.mean_propagation == "none":
-            raise ValueError("epistemic_weight > 0 needs mean propagation (per_member or shared): eq. 24 uses it")
-        if self.safety_weight > 0 and not self.safety_boxes:
-            raise ValueError("safety_weight > 0 needs at least one safety box")
-        return self
-
-    @classmethod
-    def pets(cls) -> RazerSettings:
-        """Plain PETS: expected particle cost only, no mean propagation."""
-        return cls(mean_propagation="none")
 
 
 class CostTerms(NamedTuple):

@@ -33,124 +33,28 @@ Reading of the thesis where it is silent (see also :class:`EnsembleConfig`):
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import time
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import nn
 
-CHECKPOINT_FORMAT = 1
+from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleConfig  # noqa: F401 (re-exported)
+
+CHECKPOINT_FORMAT = 2
+"""2: the state bounds of the propagation clamp (EnsembleConfig.state_margin) are part of the weights."""
 """Version of the layout written by :meth:`DynamicsEnsemble.export_state`."""
 
 LOGVAR_AT_BOUND = 0.1
 """A predicted log-variance within this distance of a bound counts as "at the bound" in :class:`TrainStats`."""
 
 ACTIVATIONS = {"silu": F.silu, "relu": F.relu, "tanh": torch.tanh, "elu": F.elu}
-
-
-class EnsembleConfig(BaseModel):
-    """Architecture and training of a probabilistic ensemble; defaults are Table 13 (BridgeMaze)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
-
-    ensemble_size: int = Field(5, ge=1)
-    """Number K of members (ensemble_size, Table 13)."""
-    hidden_layers: int = Field(6, ge=1)
-    """Hidden layers per member (num_layers, Table 13), each followed by the activation."""
-    hidden_size: int = Field(400, ge=1)
-    """Units per hidden layer (size, Table 13)."""
-    activation: Literal["silu", "relu", "tanh", "elu"] = "silu"
-    """Activation of the hidden layers (silu = swish, Table 13); the output layer is linear."""
-    min_logvar: float = -10.0
-    """Lower soft bound of the predicted log-variance (var_clipping_low, Table 13)."""
-    max_logvar: float = 4.0
-    """Upper soft bound of the predicted log-variance (var_clipping_high, Table 13)."""
-    learn_logvar_bounds: bool = False
-    """Train the bounds as parameters with the PETS regulariser 0.01 (sum max - sum min); D.2.1 keeps them fixed."""
-    lr: float = Field(2e-3, gt=0)
-    """Adam learning rate (Table 13)."""
-    adam_eps: float = Field(1e-8, gt=0)
-    """Adam epsilon (not in the thesis; torch's default)."""
-    batch_size: int = Field(512, ge=1)
-    """Minibatch size per member (Table 13)."""
-    weight_decay: float = Field(1e-5, ge=0)
-    """L2 decay of the weight matrices (not biases), applied by Adam (Table 13)."""
-    grad_norm: float | None = Field(2.0, gt=0)
-    """Clip each member's gradient to this L2 norm, as if it were trained alone; None: no clipping (Table 13/14)."""
-    epochs: int = Field(25, ge=1)
-    """Passes over all data per training call (Table 13)."""
-    bootstrap: bool = False
-    """Each member draws its epoch's samples with replacement (PETS' bootstrap) instead of a fresh permutation."""
-    retrain_from_scratch: bool = False
-    """Re-initialise weights and Adam state at every training call; default warm start (see the module docstring)."""
-
-    @model_validator(mode="after")
-    def _bounds_are_ordered(self) -> EnsembleConfig:
-        if not self.min_logvar < self.max_logvar:
-            raise ValueError(f"min_logvar ({self.min_logvar}) must be below max_logvar ({self.max_logvar})")
-        return self
-
-    @classmethod
-    def preset(cls, name: str, **overrides: Any) -> EnsembleConfig:
-        """A named preset (:data:`ENSEMBLE_PRESETS`) with some fields overridden."""
-        try:
-            base = ENSEMBLE_PRESETS[name]
-        except KeyError:
-            raise ValueError(f"unknown ensemble preset {name!r}; known: {', '.join(ENSEMBLE_PRESETS)}") from None
-        return cls(**(base | overrides))
-
-
-ENSEMBLE_PRESETS: dict[str, dict[str, Any]] = {
-    # Table 13.
-    "bridge_maze": dict(
-        ensemble_size=5,
-        hidden_layers=6,
-        hidden_size=400,
-        activation="silu",
-        min_logvar=-10.0,
-        max_logvar=4.0,
-        lr=2e-3,
-        batch_size=512,
-        weight_decay=1e-5,
-        grad_norm=2.0,
-        epochs=25,
-    ),
-    # Table 14 lists only the differences to Table 13: grad_norm None, var_clipping_low -6;
-    # ensemble size, activation and var_clipping_high carry over.
-    "noisy_halfcheetah": dict(
-        ensemble_size=5,
-        hidden_layers=4,
-        hidden_size=200,
-        activation="silu",
-        min_logvar=-6.0,
-        max_logvar=4.0,
-        lr=2e-4,
-        batch_size=256,
-        weight_decay=3e-5,
-        grad_norm=None,
-        epochs=50,
-    ),
-    # Not in the thesis: a net that trains in seconds on a two-core machine (tests, smoke runs).
-    "small": dict(
-        ensemble_size=5,
-        hidden_layers=3,
-        hidden_size=64,
-        activation="silu",
-        min_logvar=-10.0,
-        max_logvar=4.0,
-        lr=1e-3,
-        batch_size=256,
-        weight_decay=1e-5,
-        grad_norm=2.0,
-        epochs=5,
-    ),
-}
 
 
 class Transitions(NamedTuple):
@@ -239,6 +143,9 @@ class EnsembleMLP(nn.Module):
             self.register_buffer("max_logvar", bounds[1])
         self.register_buffer("input_mean", torch.zeros(in_dim))
         self.register_buffer("input_std", torch.ones(in_dim))
+        # Where propagated states are clamped (fit to the training data with the normaliser; +-inf: nowhere).
+        self.register_buffer("state_low", torch.full((out_dim,), -math.inf))
+        self.register_buffer("state_high", torch.full((out_dim,), math.inf))
         self.out_dim = out_dim
         self.layer_sizes = sizes
 
@@ -324,9 +231,23 @@ class DynamicsEnsemble:
         """Fit the input normalisation (use_input_normalization, Table 13) to a dataset."""
         inputs, _ = self._inputs_targets(data)
         std = inputs.std(dim=0, unbiased=False)
-        # Constant inputs (e.g. a quaternion that never rotates) would divide by zero.
+        # Constant inputs (e.g. a quaternion that never rotates) would divide by (almost) zero.
+        threshold = max(self.config.input_std_threshold, 1e-6)
         self.net.input_mean.copy_(inputs.mean(dim=0))
-        self.net.input_std.copy_(torch.where(std < 1e-6, torch.ones_like(std), std))
+        self.net.input_std.copy_(torch.where(std < threshold, torch.ones_like(std), std))
+        if self.config.state_margin is not None:
+            next_states = torch.as_tensor(data.next_observations, dtype=torch.float32)
+            states = torch.cat([inputs[:, : self.obs_dim], next_states])
+            low, high = states.min(dim=0).values, states.max(dim=0).values
+            margin = self.config.state_margin * (high - low)
+            self.net.state_low.copy_(low - margin)
+            self.net.state_high.copy_(high + margin)
+
+    def clamp_states(self, states: torch.Tensor) -> torch.Tensor:
+        """States clamped into the widened range of the training data (EnsembleConfig.state_margin)."""
+        if self.config.state_margin is None:
+            return states
+        return torch.clamp(states, self.net.state_low, self.net.state_high)
 
     # ------------------------------------------------------------ training
     def _clip_per_member(self) -> None:
@@ -482,17 +403,59 @@ class DynamicsEnsemble:
         model.import_state(arrays, meta)
         return model
 
-    def save(self, path: str | Path) -> None:
-        """Write an ``.npz`` checkpoint; metadata is a JSON string stored as bytes (loads with allow_pickle=False)."""
-        arrays, meta = self.export_state()
-        meta_bytes = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        with open(path, "wb") as handle:
-            np.savez(handle, __meta__=meta_bytes, **arrays)
+    def export_weights(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Weights and input normaliser without the optimiser state: what planning needs (a quarter of the bytes).
+
+        :meth:`from_state` rebuilds a model from it (with a fresh optimiser).
+        """
+        arrays = {f"net.{name}": t.detach().cpu().numpy().copy() for name, t in self.net.state_dict().items()}
+        meta = {
+            "format": CHECKPOINT_FORMAT,
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "config": self.config.model_dump(),
+            "seed": self.seed,
+            "weights_version": self.weights_version,
+            "adam_steps": {},
+        }
+        return arrays, meta
+
+    def to_bytes(self, weights_only: bool = False) -> bytes:
+        """The bytes of an ``.npz`` checkpoint (see :meth:`save`)."""
+        arrays, meta = self.export_weights() if weights_only else self.export_state()
+        return npz_bytes(arrays, meta)
+
+    def save(self, path: str | Path, weights_only: bool = False) -> None:
+        """Write an ``.npz`` checkpoint; metadata is a JSON string stored as bytes (loads with allow_pickle=False).
+
+        ``weights_only`` leaves the Adam state out. Load either kind with
+        ``DynamicsEnsemble.load(path)``.
+        """
+        Path(path).write_bytes(self.to_bytes(weights_only))
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> DynamicsEnsemble:
+        """A model from the bytes of an ``.npz`` checkpoint, without unpickling anything."""
+        return cls.from_state(*read_npz(io.BytesIO(data)))
 
     @classmethod
     def load(cls, path: str | Path) -> DynamicsEnsemble:
-        """Read a checkpoint written by :meth:`save`, without unpickling anything."""
-        with np.load(path, allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in archive.files if name != "__meta__"}
-            meta = json.loads(archive["__meta__"].tobytes().decode())
-        return cls.from_state(arrays, meta)
+        """Read a checkpoint written by :meth:`save` (or an ``mbrl`` run's ``models/*.npz``), without unpickling."""
+        return cls.from_state(*read_npz(path))
+
+
+def npz_bytes(arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> bytes:
+    """An ensemble checkpoint archive: the arrays plus the JSON metadata as the uint8 member ``__meta__``."""
+    buffer = io.BytesIO()
+    np.savez(buffer, __meta__=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
+    return buffer.getvalue()
+
+
+def read_npz(source: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """(arrays, metadata) of an ensemble checkpoint archive (a path or a file object); pickles are refused."""
+    with np.load(source, allow_pickle=False) as archive:
+        if "__meta__" not in archive.files:
+            raise ValueError("not an ensemble checkpoint (no __meta__ member)")
+        arrays = {name: archive[name] for name in archive.files if name != "__meta__"}
+        meta = json.loads(archive["__meta__"].tobytes().decode())
+    return arrays, meta

@@ -18,6 +18,8 @@ batched ensemble evaluation over all N * P particles plus the mean states:
   member"). ``shared``: one mean state, s_bar_{t+1} = s_bar_t + mean_k mu_k(s_bar_t, a_t),
   on which every member is evaluated, the reading of eq. 24's unindexed s_bar_t.
   ``none``: plain PETS. Both variants cost the same K mean-state rows per sequence.
+* **Clamp**: particles and mean states are clamped into the training data's
+  range widened by ``EnsembleConfig.state_margin`` (not in the thesis; see there).
 
 Uncertainties, per state dimension:
 
@@ -32,13 +34,12 @@ Uncertainties, per state dimension:
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 
 from workers.dynamics.ensemble import DynamicsEnsemble
-
-MeanPropagation = Literal["none", "per_member", "shared"]
+from workers.dynamics.settings import MeanPropagation
 
 
 class Propagation(NamedTuple):
@@ -115,7 +116,7 @@ def petsus_propagate(
 
         var = logvar[:, :rows].exp()
         noise = torch.randn(particle_in.shape, generator=generator)
-        sampled = particle_in + mu[:, :rows] + var.sqrt() * noise
+        sampled = model.clamp_states(particle_in + mu[:, :rows] + var.sqrt() * noise)
 
         def to_particles(x: torch.Tensor, index: torch.Tensor = index) -> torch.Tensor:
             """(K, N per, d) rows back to each sequence's particles (N, P, d)."""
@@ -130,7 +131,7 @@ def petsus_propagate(
             mean_mu, mean_var = mu[:, rows:], logvar[:, rows:].exp()  # (K, N, d)
             var_e.append(mean_mu.var(dim=0, unbiased=False) + mean_var.var(dim=0, unbiased=False))
             step = mean_mu if mean_propagation == "per_member" else mean_mu.mean(dim=0, keepdim=True)
-            mean_state = mean_state + step
+            mean_state = model.clamp_states(mean_state + step)
             means.append(mean_state)
 
     return Propagation(

@@ -17,9 +17,10 @@ from workers.methods.base import (
     TrialSpec,
     run_locally,
 )
+from workers.methods.mbrl import MbrlProgram, MbrlSettings
 from workers.methods.mpc import MpcProgram, MpcSettings
 
-METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram,)}
+METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram, MbrlProgram)}
 """Registry: method name -> program class."""
 
 DEFAULT_METHOD = "mpc"
@@ -44,6 +45,8 @@ __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
     "Artifact",
+    "MbrlProgram",
+    "MbrlSettings",
     "LocalRoleGroup",
     "MethodSettings",
     "MpcProgram",

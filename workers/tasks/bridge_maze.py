@@ -36,16 +36,20 @@ Chosen here, because the thesis gives none of it:
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import mujoco
 import numpy as np
-import torch
 from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.spaces import Box
+from pydantic import Field
 
+from workers.tasks.base import TaskOptions
 from workers.tasks.model_based import ModelBasedTask
+
+if TYPE_CHECKING:
+    import torch
 
 ENV_ID = "icemlab/BridgeMaze-v0"
 MODEL_PATH = Path(__file__).parent / "assets" / "bridge_maze.xml"
@@ -188,29 +192,41 @@ if ENV_ID not in gym.registry:
     gym.register(ENV_ID, entry_point=BridgeMazeEnv, max_episode_steps=200)
 
 
+class BridgeMazeOptions(TaskOptions):
+    """Options of BridgeMaze (the thesis gives none of these values; see workers/tasks/bridge_maze.py)."""
+
+    wind_max: float = Field(30.0, ge=0)
+    """f_max: the largest side-wind force on the middle bridge, in newtons (amplitude ~ U(0, f_max))."""
+    wind_period: int = Field(5, ge=1)
+    """Environment steps between wind redraws (App. D.4: every 5 steps)."""
+    episode_length: int = Field(200, ge=1)
+    """Environment steps per episode."""
+    terminate_on_fall: bool = True
+    """End the episode when the cube falls into the lava (else -1 per step until the time limit, eq. 36)."""
+
+
 class BridgeMaze(ModelBasedTask):
     """BridgeMaze as a chapter-5 task (see the module docstring for every choice).
 
-    Args:
-        wind_max: largest wind force f_max in newtons.
-        wind_period: environment steps between wind redraws.
-        episode_length: environment steps per episode.
-        terminate_on_fall: end the episode on a fall.
+    Options (:class:`BridgeMazeOptions`): wind_max, wind_period, episode_length, terminate_on_fall.
     """
 
+    Options = BridgeMazeOptions
     name = "bridge_maze"
     observation_dim = 10
     action_dim = 2
     ensemble_preset = "bridge_maze"
     colored_noise_beta = 2.0  # Table 15
+    has_success = True
+    map_rectangles = WALKWAY
+    coverage_range = COVERAGE_RANGE
     description = "cube over three bridges above lava, wind on the middle one (RAZER, App. D.4)"
 
-    def __init__(
-        self, wind_max: float = 30.0, wind_period: int = 5, episode_length: int = 200, terminate_on_fall: bool = True
-    ):
-        self.wind_max, self.wind_period = wind_max, wind_period
-        self.episode_length = episode_length
-        self.terminate_on_fall = terminate_on_fall
+    def __init__(self, **options: Any):
+        super().__init__(**options)
+        self.wind_max, self.wind_period = self.options.wind_max, self.options.wind_period
+        self.episode_length = self.options.episode_length
+        self.terminate_on_fall = self.options.terminate_on_fall
 
     def make_env(self) -> gym.Env:
         return gym.make(
@@ -223,6 +239,8 @@ class BridgeMaze(ModelBasedTask):
 
     def planning_cost(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         """c = -r of eq. 36 (App. D.4)."""
+        import torch
+
         x, next_x, next_z = obs[:, 0], next_obs[:, 0], next_obs[:, 2]
         progress = (x - GOAL_X).abs() - (next_x - GOAL_X).abs()
         reward = torch.where(next_z < LAVA_Z, -1.0, torch.where(next_x >= GOAL_X, 0.0, progress))
@@ -231,7 +249,7 @@ class BridgeMaze(ModelBasedTask):
     def episode_metrics(
         self, observations: np.ndarray, rewards: np.ndarray, infos: list[dict[str, Any]]
     ) -> dict[str, float]:
-        """return, success (goal crossed, never fell), failure (fell), max_x, steps, coverage of this episode."""
+        """return, success (goal crossed, never fell), failure and falls (fell), max_x, steps, coverage."""
         observations = np.asarray(observations)
         fell = bool(np.any(observations[:, 2] < LAVA_Z))
         reached = bool(np.any((observations[:, 0] >= GOAL_X) & (observations[:, 2] >= LAVA_Z)))
@@ -239,8 +257,17 @@ class BridgeMaze(ModelBasedTask):
             "return": float(np.sum(rewards)),
             "success": float(reached and not fell),
             "failure": float(fell),
+            "falls": float(fell),
             "max_x": float(observations[:, 0].max()),
             "steps": float(len(rewards)),
             "coverage": state_coverage(coverage_grid(observations[:, :2])),
             "windy_steps": float(sum(info.get("wind_applied", 0.0) > 0 for info in infos)),
         }
+
+    def coverage_grid(self, observations: np.ndarray) -> np.ndarray:
+        """The 50 x 50 grid of App. D.4.1 over the visited (x, y)."""
+        return coverage_grid(np.asarray(observations)[:, :2])
+
+    def visited_xy(self, observations: np.ndarray) -> np.ndarray:
+        """The cube's (x, y): the plane of Fig. 37b/c."""
+        return np.asarray(observations)[:, :2]

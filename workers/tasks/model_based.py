@@ -7,23 +7,38 @@ RAZER's evaluator (workers/dynamics/costs.py), its safety sets, and per-episode
 metrics. Actions are normalised to [-1, 1] in every dimension, as in iCEM;
 ``env_action`` maps them to the environment, and the ensemble is trained on the
 normalised actions.
+
+Tasks are registered with the ground-truth ones (workers/tasks/__init__.py
+``TASKS``), so sweeps name them and validate their options the same way:
+each task has an ``Options`` model (a :class:`TaskOptions`) and is built as
+``Task(**options)``. Nothing here imports torch at module level (the planning
+costs import it when called), so validating a sweep stays fast.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
-import torch
 
-from workers.dynamics.costs import SafetyBox
+from workers.dynamics.settings import SafetyBox
+from workers.tasks.base import TaskOptions
+
+if TYPE_CHECKING:
+    import torch
 
 
 class ModelBasedTask(ABC):
-    """A chapter-5 task: real environment, planning cost c(s, a, s') and episode metrics."""
+    """A chapter-5 task: real environment, planning cost c(s, a, s') and episode metrics.
 
+    Args:
+        **options: values for the task's :attr:`Options` (validated; unknown keys are errors).
+    """
+
+    Options: ClassVar[type[TaskOptions]] = TaskOptions
+    """The task's options model (a sweep sets them under ``task_options``)."""
     name: ClassVar[str]
     """Name the service may register the task under."""
     observation_dim: ClassVar[int]
@@ -37,8 +52,20 @@ class ModelBasedTask(ABC):
     description: ClassVar[str] = ""
     """One line for listings."""
 
+    planner_defaults: ClassVar[dict[str, Any]] = {}
+    """The task's differences to Table 15's planner settings (PlannerConfig fields), e.g. Table 16."""
+    map_rectangles: ClassVar[tuple] = ()
+    """((x0, x1), (y0, y1)) rectangles drawn under the visited-state scatter (e.g. BridgeMaze's walkways)."""
+    coverage_range: ClassVar[tuple | None] = None
+    """((x0, x1), (y0, y1)) extent of the visited-state plane, if the task has one."""
+    has_success: ClassVar[bool] = False
+    """Whether :meth:`episode_metrics` reports ``success``."""
+
     episode_length: int
     """Environment steps per episode."""
+
+    def __init__(self, **options: Any):
+        self.options = self.Options(**options)
 
     @abstractmethod
     def make_env(self) -> gym.Env:
@@ -70,3 +97,11 @@ class ModelBasedTask(ABC):
 
         Returns at least ``return``; ``success`` and ``failure`` (0.0 / 1.0) where the task defines them.
         """
+
+    def coverage_grid(self, observations: np.ndarray) -> np.ndarray | None:
+        """Boolean grid of the state-space cells the observations visit (OR grids to accumulate); None: no grid."""
+        return None
+
+    def visited_xy(self, observations: np.ndarray) -> np.ndarray | None:
+        """(n, 2) the plane the visited-state scatter (Fig. 37b/c) is drawn in; None: no such plane."""
+        return None

@@ -33,14 +33,18 @@ the step), where the environment's reward uses the mean velocity over the step
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import gymnasium as gym
 import numpy as np
-import torch
+from pydantic import Field
 
-from workers.dynamics.costs import SafetyBox
+from workers.dynamics.settings import SafetyBox
+from workers.tasks.base import TaskOptions
 from workers.tasks.model_based import ModelBasedTask
+
+if TYPE_CHECKING:
+    import torch
 
 CTRL_COST_WEIGHT = 0.1
 """HalfCheetah-v5's control cost weight."""
@@ -91,45 +95,49 @@ class NoisyHalfCheetahEnv(gym.Wrapper):
             raw.set_state(qpos, qvel)
             obs = raw._get_obs()
         reward = float(info["x_velocity"] - CTRL_COST_WEIGHT * np.square(clean).sum())
-        info = dict(
-            info, noisy_step=noisy, applied_action=applied, ceiling_violation=bool(obs[HEIGHT_INDEX] > self.ceiling)
-        )
+        info = dict(info, noisy_step=noisy, applied_action=applied, ceiling_violation=bool(obs[HEIGHT_INDEX] > self.ceiling))
         return obs, reward, terminated, truncated, info
+
+
+class NoisyHalfCheetahOptions(TaskOptions):
+    """Options of Noisy-HalfCheetah (see workers/tasks/noisy.py for the thesis's two readings)."""
+
+    noise_on: Literal["action", "state"] = "action"
+    """Where the noise goes: ``action`` (D.1.1, default) or ``state`` (eq. 37)."""
+    noise_variance: float = Field(0.2, ge=0)
+    """Variance of the Gaussian noise per dimension (0.2 in D.4)."""
+    velocity_threshold: float = 6.0
+    """Noise is added when the forward velocity exceeds this (6 in D.1.1)."""
+    ceiling: float = 0.3
+    """Torso height (observation 0, relative to the start) above which a step violates safety (0.3 in D.4)."""
+    ceiling_cost: float = Field(0.0, ge=0)
+    """Planning cost per particle step above the ceiling (PETS' hard-violation penalty, D.1.5); 0: none."""
+    episode_length: int = Field(300, ge=1)
+    """Environment steps per episode (300 in Fig. 36)."""
 
 
 class NoisyHalfCheetah(ModelBasedTask):
     """Noisy-HalfCheetah as a chapter-5 task (see the module docstring for every choice).
 
-    Args:
-        noise_on: ``action`` (default) or ``state``.
-        noise_variance: noise variance per dimension.
-        velocity_threshold: forward velocity above which noise is added.
-        ceiling: torso height counted as a safety violation.
-        ceiling_cost: planning cost per particle step above the ceiling (0: none).
-        episode_length: environment steps per episode.
+    Options (:class:`NoisyHalfCheetahOptions`): noise_on, noise_variance, velocity_threshold, ceiling,
+    ceiling_cost, episode_length.
     """
 
+    Options = NoisyHalfCheetahOptions
     name = "noisy_halfcheetah"
     observation_dim = 17
     action_dim = 6
     ensemble_preset = "noisy_halfcheetah"
     colored_noise_beta = 0.25  # Table 16
+    planner_defaults = {"population": 120, "iterations": 4}  # Table 16: num_simulated_trajectories, opt_iterations
     description = "HalfCheetah with Gaussian noise above velocity 6 and a ceiling at 0.3 (RAZER, App. D.4)"
 
-    def __init__(
-        self,
-        noise_on: Literal["action", "state"] = "action",
-        noise_variance: float = 0.2,
-        velocity_threshold: float = 6.0,
-        ceiling: float = 0.3,
-        ceiling_cost: float = 0.0,
-        episode_length: int = 300,
-    ):
-        if ceiling_cost < 0:
-            raise ValueError(f"ceiling_cost must be >= 0, got {ceiling_cost}")
-        self.noise_on, self.noise_variance = noise_on, noise_variance
-        self.velocity_threshold, self.ceiling, self.ceiling_cost = velocity_threshold, ceiling, ceiling_cost
-        self.episode_length = episode_length
+    def __init__(self, **options: Any):
+        super().__init__(**options)
+        o = self.options
+        self.noise_on, self.noise_variance = o.noise_on, o.noise_variance
+        self.velocity_threshold, self.ceiling, self.ceiling_cost = o.velocity_threshold, o.ceiling, o.ceiling_cost
+        self.episode_length = o.episode_length
 
     def make_env(self) -> gym.Env:
         env = gym.make("HalfCheetah-v5", max_episode_steps=self.episode_length)
@@ -150,12 +158,14 @@ class NoisyHalfCheetah(ModelBasedTask):
     def episode_metrics(
         self, observations: np.ndarray, rewards: np.ndarray, infos: list[dict[str, Any]]
     ) -> dict[str, float]:
-        """return, ceiling_violations (apart from the return), failure (any violation), noisy_steps, mean_velocity."""
+        """return, ceiling_violations (= safety_violations, counted apart from the return), failure (any violation),
+        noisy_steps, mean_velocity."""
         observations = np.asarray(observations)
         violations = int(np.sum(observations[1:, HEIGHT_INDEX] > self.ceiling))
         return {
             "return": float(np.sum(rewards)),
             "ceiling_violations": float(violations),
+            "safety_violations": float(violations),
             "failure": float(violations > 0),
             "noisy_steps": float(sum(bool(info.get("noisy_step")) for info in infos)),
             "mean_velocity": float(observations[1:, VELOCITY_INDEX].mean()) if len(observations) > 1 else 0.0,

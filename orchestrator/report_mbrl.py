@@ -1,0 +1,233 @@
+"""Plots of ``mbrl`` sweeps (thesis chapter 5), as pure functions of summarised trial runs.
+
+* :func:`success_figure`: success rate of the frozen model against the aleatoric penalty weight w_A, PETS
+  as a reference line (Fig. 19a), mean +- sem over the seeds of each configuration.
+* :func:`drop_rate_figure`: the rate of failures (box drops, else falls) of each frozen row against a swept
+  task option such as the noise strength (Fig. 19b).
+* :func:`coverage_figure`: final state coverage of each configuration (the end point of Fig. 37a);
+  :func:`coverage_curves_figure` draws whole coverage-over-iterations curves from metric histories.
+
+The frozen rows come from the trials' summary metrics ``frozen/<row>/<key>`` (workers/methods/mbrl.py):
+``pets`` and ``razer_wA_<w>`` rows with ``success_rate``, ``mean_return``, ``falls_rate``,
+``box_drops_rate``, ``aleatoric_weight``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+FAILURE_KEYS = ("box_drops_rate", "falls_rate")
+"""Failure rates of frozen rows, in order of preference (Noisy-FetchPickAndPlace drops boxes, BridgeMaze falls)."""
+
+
+class FrozenPoint(NamedTuple):
+    """One frozen-evaluation row of one configuration, over its trials (seeds)."""
+
+    row: str
+    """Row name: ``pets`` or ``razer_wA_<w>``."""
+    pets: bool
+    aleatoric_weight: float
+    values: dict[str, tuple[float, float, int]]
+    """key -> (mean, sem, trials) over the configuration's trials."""
+
+    def mean(self, key: str) -> float | None:
+        return self.values[key][0] if key in self.values else None
+
+
+def _mean_sem(values: Sequence[float]) -> tuple[float, float, int]:
+    array = np.asarray([v for v in values if math.isfinite(v)], dtype=float)
+    if not len(array):
+        return math.nan, math.nan, 0
+    sem = float(array.std(ddof=1) / math.sqrt(len(array))) if len(array) > 1 else 0.0
+    return float(array.mean()), sem, len(array)
+
+
+def frozen_points(trials: Iterable[Any]) -> list[FrozenPoint]:
+    """The frozen rows of a configuration's trials (objects with a ``values`` dict of summary metrics)."""
+    collected: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for trial in trials:
+        for key, value in trial.values.items():
+            parts = key.split("/")
+            if len(parts) == 3 and parts[0] == "frozen":
+                collected[parts[1]][parts[2]].append(float(value))
+    points = []
+    for row, keys in collected.items():
+        values = {key: _mean_sem(v) for key, v in keys.items()}
+        pets = bool(values.get("pets", (0.0,))[0]) or row == "pets"
+        weight = values.get("aleatoric_weight", (0.0,))[0]
+        points.append(FrozenPoint(row, pets, float(weight), values))
+    points.sort(key=lambda p: (not p.pets, p.aleatoric_weight))
+    return points
+
+
+def _label(group: Any) -> str:
+    parts = [group.variant or "", *[f"{k}={v}" for k, v in group.setting.items()]]
+    return " ".join(p for p in parts if p) or group.task
+
+
+def success_figure(summary: Any):
+    """Fig. 19a: frozen success rate (and mean return) against w_A per configuration; None without frozen rows."""
+    groups = [(g, frozen_points(g.trials)) for g in summary.groups]
+    groups = [(g, points) for g, points in groups if any("success_rate" in p.values for p in points)]
+    if not groups:
+        return None
+    figure, (success_axis, return_axis) = plt.subplots(1, 2, figsize=(11, 4))
+    for group, points in groups:
+        razer = [p for p in points if not p.pets and "success_rate" in p.values]
+        label = _label(group)
+        color = None
+        if razer:
+            line = success_axis.errorbar(
+                [p.aleatoric_weight for p in razer],
+                [p.values["success_rate"][0] for p in razer],
+                yerr=[p.values["success_rate"][1] for p in razer],
+                marker="o", capsize=3, label=f"RAZER {label}".strip(),
+            )  # fmt: skip
+            color = line[0].get_color()
+            if all("mean_return" in p.values for p in razer):
+                return_axis.errorbar(
+                    [p.aleatoric_weight for p in razer],
+                    [p.values["mean_return"][0] for p in razer],
+                    yerr=[p.values["mean_return"][1] for p in razer],
+                    marker="o", capsize=3, color=color, label=f"RAZER {label}".strip(),
+                )  # fmt: skip
+        for p in points:
+            if p.pets and "success_rate" in p.values:
+                mean, sem, n = p.values["success_rate"]
+                success_axis.axhline(
+                    mean, linestyle="--", color=color or "tab:red", label=f"PETS {label} (n={n})".strip()
+                )
+                if sem:
+                    success_axis.axhspan(mean - sem, mean + sem, color=color or "tab:red", alpha=0.1)
+                if "mean_return" in p.values:
+                    return_axis.axhline(p.values["mean_return"][0], linestyle="--", color=color or "tab:red")
+    for axis, name in ((success_axis, "success rate"), (return_axis, "mean return")):
+        axis.set_xlabel("aleatoric penalty weight w_A")
+        axis.set_ylabel(name)
+        axis.grid(alpha=0.3)
+    success_axis.set_ylim(-0.02, 1.02)
+    success_axis.set_title("frozen model: success (thesis Fig. 19a: PETS 0.58, RAZER up to 0.96)", fontsize=9)
+    return_axis.set_title("frozen model: return (dashed: PETS)", fontsize=9)
+    success_axis.legend(fontsize=7)
+    figure.tight_layout()
+    return figure
+
+
+def _swept_task_option(summary: Any) -> str | None:
+    """The numeric task option the configurations differ in (e.g. task_options.wind_max), if one."""
+    options = defaultdict(set)
+    for group in summary.groups:
+        for key, value in group.setting.items():
+            if key.startswith("task_options.") and isinstance(value, int | float) and not isinstance(value, bool):
+                options[key].add(value)
+    swept = [key for key, values in options.items() if len(values) > 1]
+    return swept[0] if len(swept) == 1 else None
+
+
+def drop_rate_figure(summary: Any, option: str | None = None):
+    """Fig. 19b: failure rate of each frozen row against a swept task option; None when nothing fits."""
+    option = option or _swept_task_option(summary)
+    if option is None:
+        return None
+    lines: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
+    key_used = None
+    for group in summary.groups:
+        if option not in group.setting:
+            continue
+        for point in frozen_points(group.trials):
+            key = next((k for k in FAILURE_KEYS if k in point.values), None)
+            if key is None:
+                continue
+            key_used = key_used or key
+            mean, sem, _ = point.values[key]
+            rest = " ".join(f"{k}={v}" for k, v in group.setting.items() if k != option)
+            lines[" ".join(filter(None, [point.row, group.variant or "", rest]))].append(
+                (group.setting[option], mean, sem)
+            )
+    if not lines:
+        return None
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for name, values in sorted(lines.items()):
+        values.sort()
+        axis.errorbar([v[0] for v in values], [v[1] for v in values], yerr=[v[2] for v in values],
+                      marker="o", capsize=3, label=name)  # fmt: skip
+    axis.set_xlabel(option.removeprefix("task_options."))
+    axis.set_ylabel(key_used.replace("_", " "))
+    axis.set_ylim(-0.02, 1.02)
+    axis.set_title("frozen rows: failure rate against the noise (thesis Fig. 19b: RAZER < 0.2)", fontsize=9)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+    figure.tight_layout()
+    return figure
+
+
+def coverage_figure(summary: Any):
+    """Final state coverage per configuration (the end of Fig. 37a), mean +- sem over seeds; None without it."""
+    rows = []
+    for group in summary.groups:
+        mean, sem, n = _mean_sem([t.values["final_coverage"] for t in group.trials if "final_coverage" in t.values])
+        if n:
+            rows.append((_label(group), mean, sem, n))
+    if not rows:
+        return None
+    figure, axis = plt.subplots(figsize=(7, 0.6 + 0.45 * len(rows)))
+    positions = np.arange(len(rows))
+    axis.barh(positions, [r[1] for r in rows], xerr=[r[2] for r in rows], capsize=3, color="tab:green")
+    axis.set_yticks(positions, [f"{r[0]} (n={r[3]})" for r in rows])
+    axis.invert_yaxis()
+    axis.set_xlabel("state coverage after the last iteration (fraction of 50 x 50 cells)")
+    axis.grid(alpha=0.3, axis="x")
+    figure.tight_layout()
+    return figure
+
+
+def coverage_curves_figure(curves: Mapping[str, Sequence[Sequence[tuple[int, float]]]]):
+    """Fig. 37a: coverage against iteration, mean +- std over the runs of each label.
+
+    Args:
+        curves: label -> one (iteration, coverage) history per run (e.g. Tracker.metric_history(run, "coverage")).
+    """
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for label, runs in curves.items():
+        by_step: dict[int, list[float]] = defaultdict(list)
+        for run in runs:
+            for step, value in run:
+                by_step[int(step)].append(float(value))
+        steps = sorted(by_step)
+        mean = np.array([np.mean(by_step[s]) for s in steps])
+        std = np.array([np.std(by_step[s]) for s in steps])
+        line = axis.plot(steps, mean, label=f"{label} (n={len(runs)})")
+        axis.fill_between(steps, mean - std, mean + std, color=line[0].get_color(), alpha=0.2)
+    axis.set_xlabel("MBRL iteration (0: random episodes)")
+    axis.set_ylabel("state coverage")
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    return figure
+
+
+def write_files(summary: Any, directory: Path) -> list[Path]:
+    """The mbrl plots that fit the sweep (frozen_success.png, failure_rate.png, coverage.png) in ``directory``."""
+    paths = []
+    for name, make in (
+        ("frozen_success", success_figure),
+        ("failure_rate", drop_rate_figure),
+        ("coverage", coverage_figure),
+    ):
+        figure = make(summary)
+        if figure is None:
+            continue
+        paths.append(directory / f"{name}.png")
+        figure.savefig(paths[-1], dpi=110)
+        plt.close(figure)
+    return paths

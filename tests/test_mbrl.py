@@ -1,0 +1,668 @@
+"""The mbrl method (thesis chapter 5): settings, the loop in-process, checkpoints, roles, bad input, reports.
+
+In-process tests use tiny settings (a 16-unit ensemble, 10-step episodes,
+a dozen sequences per CEM-iteration); the service tests (real Ray, real
+MLflow, real faults) and the smoke sweep through the CLI are marked slow.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from helpers import cli
+
+from workers import checkpoint
+from workers.dynamics.ensemble import DynamicsEnsemble
+from workers.methods import METHODS, TrialSpec
+from workers.methods.base import LocalRoleGroup
+from workers.methods.mbrl import TABLE_15, MbrlProgram, MbrlSettings, frozen_rows
+from workers.tasks import make_task
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY: dict[str, Any] = {
+    "task_options": {"episode_length": 10},
+    "model": {"preset": "small", "hidden_size": 16, "hidden_layers": 2, "epochs": 2, "batch_size": 16},
+    "planner": {"population": 12, "iterations": 2, "horizon": 4, "elites": 4},
+    "razer": {"epistemic_weight": 0.05},
+    "random_episodes": 2,
+    "iterations": 2,
+    "model_every": 1,
+    "frozen": {"episodes": 3, "pets": True, "aleatoric_weights": [0.5]},
+}
+
+
+def tiny_trial(seed: int = 0, task: str = "bridge_maze", **changes: Any) -> TrialSpec:
+    raw = {**TINY, **changes}
+    settings = MbrlSettings.model_validate(raw)
+    resolved = MbrlProgram.resolve(settings, make_task(task, settings.task_options))
+    return TrialSpec("mbrl", task, resolved, seed)
+
+
+class RecordingGroup(LocalRoleGroup):
+    """In-process role workers that remember what they were asked."""
+
+    def __init__(self, name, workers):
+        super().__init__(name, workers)
+        self.calls: list[tuple[int, str, tuple]] = []
+        self.shared: list[Any] = []
+
+    def submit(self, member, method, *args):
+        self.calls.append((member, method, args))
+        return super().submit(member, method, *args)
+
+    def share(self, value):
+        self.shared.append(value)
+        return value
+
+
+def build(trial: TrialSpec, planners: int = 1) -> MbrlProgram:
+    specs = MbrlProgram.roles_for(trial, 1, {"planner": planners})
+    roles = {
+        spec.name: RecordingGroup(spec.name, [spec.worker(**spec.kwargs) for _ in range(spec.count)]) for spec in specs
+    }
+    return MbrlProgram(trial, roles, 1)
+
+
+def run_rounds(program: MbrlProgram, rounds) -> list:
+    return [program.run_round(index) for index in rounds]
+
+
+# ------------------------------------------------------------------ settings
+def test_resolution_fills_the_thesis_tables_per_task():
+    bridge = MbrlProgram.resolve(MbrlSettings(), make_task("bridge_maze"))
+    assert bridge.model.preset == "bridge_maze" and (bridge.model.hidden_layers, bridge.model.hidden_size) == (6, 400)
+    planner = bridge.planner
+    for key, value in TABLE_15.items():
+        if key != "budget":
+            assert getattr(planner, key) == value, key
+    assert planner.noise_beta == 2.0 and planner.budget == 3 * 128 + 3 + 2 * 3  # + shifted + re-evaluated elites
+    cheetah = MbrlProgram.resolve(MbrlSettings(), make_task("noisy_halfcheetah"))
+    assert (cheetah.planner.population, cheetah.planner.iterations, cheetah.planner.noise_beta) == (120, 4, 0.25)
+    assert cheetah.model.preset == "noisy_halfcheetah" and cheetah.model.min_logvar == -6.0
+    # The task's own safety box (the ceiling) is filled in; explicit settings win over the tables.
+    assert [box.dims for box in cheetah.razer.safety_boxes] == [(0,)]
+    custom = MbrlProgram.resolve(MbrlSettings(planner={"horizon": 12}, model={"epochs": 3}), make_task("bridge_maze"))
+    assert custom.planner.horizon == 12 and custom.planner.population == 128 and custom.model.epochs == 3
+
+
+def test_frozen_rows_are_pets_then_razer_by_weight():
+    settings = MbrlSettings(
+        razer={"epistemic_weight": 0.05, "safety_weight": 0.0}, frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0]}
+    )
+    rows = frozen_rows(settings)
+    assert [name for name, _ in rows] == ["pets", "razer_wA_0.1", "razer_wA_1"]
+    pets = rows[0][1]
+    assert pets.is_pets() and pets.mean_propagation == "none"
+    assert [(r.aleatoric_weight, r.epistemic_weight, r.mean_propagation) for _, r in rows[1:]] == [
+        (0.1, 0.0, "per_member"),
+        (1.0, 0.0, "per_member"),
+    ]
+    assert MbrlProgram.planned_rounds(TrialSpec("mbrl", "bridge_maze", settings, 0)) == 1 + 10 + 3
+
+
+# --------------------------------------------------------------- the loop
+@pytest.fixture(scope="module")
+def tiny_run():
+    """The whole tiny trial with three planning workers (the runner's and two actors), round by round."""
+    trial = tiny_trial()
+    program = build(trial, planners=3)
+    reports = run_rounds(program, range(program.total_rounds()))
+    yield trial, program, reports
+    program.close()
+
+
+def test_the_loop_collects_trains_and_evaluates(tiny_run):
+    trial, program, reports = tiny_run
+    assert len(reports) == MbrlProgram.planned_rounds(trial) == 1 + 2 + 2
+    assert [r.step for r in reports] == [0, 1, 2, 0, 1] and [r.done for r in reports] == [False] * 4 + [True]
+    zero, first, second = (r.metrics for r in reports[:3])
+    # Round 0: two colored-noise episodes of 10 steps, one training call; nothing to hold out yet.
+    assert zero["dataset_size"] == 20 and zero["weights_version"] == 1 and "held_out_nll" not in zero
+    # Iterations: one planned episode each on the previous weights, held out before training on it.
+    for index, metrics in ((1, first), (2, second)):
+        assert metrics["planned_with_version"] == index and metrics["weights_version"] == index + 1
+        assert metrics["dataset_size"] == 20 + 10 * index
+        for key in (
+            "train_nll",
+            "train_mse",
+            "held_out_nll",
+            "held_out_mse",
+            "logvar_at_bound",
+            "train_seconds",
+            "episode_return",
+            "success",
+            "falls",
+            "coverage",
+            "cost/c",
+            "cost/c_A",
+            "cost/c_E",
+            "cost/c_S",
+        ):
+            assert math.isfinite(metrics[key]), key
+        assert metrics["cost/c_E"] < 0 < metrics["cost/u_E"]  # w_E = 0.05: a bonus
+        assert metrics["cost/c_A"] == 0.0  # w_A = 0 during training
+    assert zero["coverage"] <= first["coverage"] <= second["coverage"]  # cumulative over the dataset
+    # Frozen rows: PETS, then RAZER w_A = 0.5, on the final weights, without training.
+    pets, razer = (r.metrics for r in reports[3:])
+    assert pets["frozen/pets"] == 1 and razer["frozen/pets"] == 0 and razer["frozen/aleatoric_weight"] == 0.5
+    assert pets["frozen/cost/c_A"] == 0 < razer["frozen/cost/c_A"] and pets["frozen/episodes"] == 3
+    assert program.weights.version == 3  # no training after the iterations
+    summary = reports[-1].summary
+    assert summary["frozen/pets/success_rate"] == pets["frozen/success_rate"]
+    assert summary["frozen_best_success_rate"] == razer["frozen/success_rate"]
+    assert summary["final_dataset_size"] == 40 and "final_coverage" in summary and "final_return" in summary
+    # Summary keys never collide with round keys (both go to one run, the summary at step 0).
+    assert not set(summary) & {k for r in reports for k in r.metrics}
+
+
+def test_frozen_episodes_fan_out_on_one_shared_weights_reference(tiny_run):
+    _, program, _ = tiny_run
+    planner = program.remote
+    frozen_calls = [(member, args) for member, method, args in planner.calls if args[1].razer is not None]
+    assert {member for member, _ in frozen_calls} == {0, 1}  # both actors took frozen episodes
+    weights = {id(args[0]) for _, args in frozen_calls}
+    assert len(weights) == 1 and {args[0].version for _, args in frozen_calls} == {3}
+    assert [w.version for w in planner.shared if w is not None] == [3, 3]  # one share per frozen round
+    # Every row plays the same episode seeds (common random numbers); planning calls got one episode each.
+    trainer = program.trainer
+    assert [method for _, method, _ in trainer.calls if method == "train"] == ["train"] * 3
+    assert len(trainer.shared) == 3  # the dataset is shared once per training round
+
+
+def test_rows_play_the_same_episode_seeds():
+    trial = tiny_trial(iterations=0, frozen={"episodes": 2, "aleatoric_weights": [0.5]})
+    program = build(trial, planners=2)
+    local_jobs = []
+    run_local = program.local.run_episode
+    program.local.run_episode = lambda weights, job, on_step=None: (
+        local_jobs.append(job) or run_local(weights, job, on_step)
+    )
+    try:
+        run_rounds(program, range(program.total_rounds()))
+        remote_jobs = [args[1] for _, method, args in program.remote.calls if method == "run_episode"]
+        by_row = {}
+        for job in local_jobs + remote_jobs:
+            if job.razer is not None:
+                by_row.setdefault(job.label, set()).add(job.seed)
+        assert sorted(by_row) == ["pets", "razer_wA_0.5"]
+        assert by_row["pets"] == by_row["razer_wA_0.5"] and len(by_row["pets"]) == 2
+    finally:
+        program.close()
+
+
+def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
+    _, program, reports = tiny_run
+    paths = [a.path for r in reports for a in r.artifacts]
+    assert paths == ["models/model_v002.npz", "models/model_v003.npz", "plots/visited_states.png"]
+    artifact = reports[2].artifacts[0]
+    (tmp_path / "model.npz").write_bytes(artifact.data)
+    model = DynamicsEnsemble.load(tmp_path / "model.npz")  # the one-liner of the README
+    assert model.weights_version == 3 and model.obs_dim == 10
+    reference = program.weights.model()
+    inputs = np.random.default_rng(0).normal(size=(5, 7, 12)).astype(np.float32)
+    import torch
+
+    for ours, theirs in zip(model.predict(torch.from_numpy(inputs)), reference.predict(torch.from_numpy(inputs))):
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=0)
+    png = reports[2].artifacts[1].data
+    assert png.startswith(b"\x89PNG")
+
+
+def test_checkpoint_round_trip_continues_identically():
+    """Stop after round 1, restore a fresh program (fresh roles) from the checkpoint bytes, go on: same results."""
+    trial = tiny_trial(frozen={"episodes": 2, "aleatoric_weights": [0.5]})
+    straight = build(trial)
+    expected = run_rounds(straight, range(straight.total_rounds()))
+    straight.close()
+
+    first = build(trial)
+    run_rounds(first, range(2))
+    data = checkpoint.to_bytes({"program": first.state_dict()})
+    first.close()
+    second = build(trial)
+    second.load_state_dict(checkpoint.from_bytes(data)["program"])
+    resumed = run_rounds(second, range(2, second.total_rounds()))
+    second.close()
+    assert second.buffer.steps == straight.buffer.steps
+    for got, want in zip(resumed, expected[2:]):
+        assert got.metrics.keys() == want.metrics.keys()
+        for key in got.metrics:
+            if "seconds" not in key:
+                assert got.metrics[key] == want.metrics[key], key
+    assert {k: v for k, v in resumed[-1].summary.items() if "seconds" not in k} == {
+        k: v for k, v in expected[-1].summary.items() if "seconds" not in k
+    }
+
+
+def test_a_frozen_only_trial_evaluates_a_saved_model(tiny_run, tmp_path):
+    _, program, reports = tiny_run
+    path = tmp_path / "model.npz"
+    path.write_bytes(reports[2].artifacts[0].data)
+    trial = tiny_trial(
+        model={}, initial_model=str(path), random_episodes=0, iterations=0, frozen={"episodes": 2, "pets": True}
+    )
+    assert MbrlProgram.roles_for(trial, 1, {}) == []  # nothing to train: no trainer
+    assert MbrlProgram.runner_cpus(trial, 1) == 1 and trial.settings.model.hidden_size == 16
+    frozen = build(trial)
+    try:
+        results = run_rounds(frozen, range(frozen.total_rounds()))
+        assert results[0].metrics["initial_model_version"] == 3
+        assert results[1].metrics["frozen/episodes"] == 2
+        state = checkpoint.from_bytes(checkpoint.to_bytes({"program": frozen.state_dict()}))["program"]
+        assert state["weights"]["version"] == 3
+    finally:
+        frozen.close()
+
+
+def test_roles_take_turns_on_one_unit():
+    trial = tiny_trial()
+    (trainer,) = MbrlProgram.roles_for(trial, 2, {})
+    assert trainer.name == "trainer" and trainer.stateful and trainer.cpus == 1 and trainer.kwargs["cpus"] == 2
+    assert MbrlProgram.runner_cpus(trial, 2) == 1
+    roles = MbrlProgram.roles_for(trial, 1, {"planner": 3})
+    planner = next(r for r in roles if r.name == "planner")
+    assert planner.count == 2 and not planner.stateful and planner.cpus == 1
+
+
+# -------------------------------------------------------------- bad input
+def write(tmp_path: Path, name: str, text: str) -> Path:
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text)
+    return path
+
+
+HEADER = "name: bad\ntask: bridge_maze\nmethod: mbrl\n"
+BAD_INPUT = {
+    # name: (sweep text after the header, expected line, path fragment, message fragment)
+    "preset_of_another_state": ("base:\n  model:\n    preset: noisy_halfcheetah\n", 6, "model.preset", "17-d state"),
+    "box_outside_the_state": (
+        "base:\n  razer:\n    safety_weight: 10\n    safety_boxes:\n      - dims: [2, 10]\n        low: [null, 0]\n"
+        "        high: [-1.5, null]\n",
+        7,
+        "razer.safety_boxes.0.dims",
+        "state dimension 10",
+    ),
+    "negative_weight": (
+        "base:\n  razer:\n    aleatoric_weight: -0.5\n",
+        6,
+        "base.razer.aleatoric_weight",
+        "greater than or equal to 0",
+    ),
+    "negative_swept_weight": (
+        "parameters:\n  razer.epistemic_weight:\n    values: [0.05, -1]\n",
+        5,
+        "razer.epistemic_weight",
+        "greater than or equal to 0",
+    ),
+    "delta_one": ("base:\n  razer:\n    safety_delta: 1.0\n", 6, "base.razer.safety_delta", "less than 1"),
+    "delta_zero": ("base:\n  razer:\n    safety_delta: 0\n", 6, "base.razer.safety_delta", "greater than 0"),
+    "negative_frozen_weight": (
+        "base:\n  frozen:\n    episodes: 25\n    aleatoric_weights: [0.1, -0.1]\n",
+        7,
+        "base.frozen.aleatoric_weights",
+        ">= 0",
+    ),
+    "safety_without_box": ("base:\n  razer:\n    safety_weight: 5\n", 6, "razer.safety_weight", "has none of its own"),
+    "unknown_role": (
+        "resources:\n  workers:\n    trainers: 2\n",
+        6,
+        "resources.workers.trainers",
+        "did you mean 'trainer'",
+    ),
+}
+
+
+def validate(sweep: Path, capsys) -> tuple[int, str]:
+    """``icemlab validate SWEEP`` in this process: (exit code, stderr)."""
+    from orchestrator.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["validate", str(sweep)])
+    return exit_.value.code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUT))
+def test_bad_input_gives_a_located_error_through_validate(case, tmp_path, capsys):
+    body, line, path, message = BAD_INPUT[case]
+    sweep = write(tmp_path, case, HEADER + body)
+    code, err = validate(sweep, capsys)
+    assert code == 2, err
+    first = err.splitlines()[0]
+    assert first.startswith(f"{sweep}:{line}: ") and path in first and message in first, first
+    assert "nothing was started" in err
+
+
+def test_the_cli_process_refuses_a_preset_of_another_state(tmp_path):
+    sweep = write(tmp_path, "preset", HEADER + BAD_INPUT["preset_of_another_state"][0])
+    result = cli("validate", str(sweep), cwd=tmp_path, timeout=120)
+    assert result.returncode == 2 and f"{sweep}:6: model.preset: preset 'noisy_halfcheetah'" in result.stderr
+
+
+def test_a_model_file_of_another_task_is_refused(tmp_path, capsys):
+    from workers.dynamics.settings import EnsembleConfig
+
+    cheetah = DynamicsEnsemble(17, 6, EnsembleConfig.preset("small", hidden_size=8))
+    cheetah.save(tmp_path / "cheetah.npz", weights_only=True)
+    sweep = write(
+        tmp_path, "mismatch", HEADER + f"base:\n  initial_model: {tmp_path / 'cheetah.npz'}\n  random_episodes: 0\n"
+    )
+    code, err = validate(sweep, capsys)
+    assert code == 2 and f"{sweep}:5: initial_model:" in err and "17-d state" in err
+
+
+def test_a_ground_truth_task_is_refused_for_mbrl_and_a_model_task_for_mpc(tmp_path, capsys):
+    for name, text, fragment in (
+        ("gt", "name: gt\ntask: halfcheetah_running\nmethod: mbrl\n", "ground-truth task of method mpc"),
+        ("mb", "name: mb\ntask: bridge_maze\n", "MuJoCo ground-truth task"),
+    ):
+        code, err = validate(write(tmp_path, name, text), capsys)
+        assert code == 2 and fragment in err, err
+
+
+def test_task_options_are_validated_like_every_task(tmp_path, capsys):
+    sweep = write(tmp_path, "wind", HEADER + "base:\n  task_options:\n    wind_max: -3\n    gust: 1\n")
+    code, err = validate(sweep, capsys)
+    assert code == 2
+    assert "task_options.wind_max" in err and "bridge_maze has no option 'gust'" in err
+
+
+# ------------------------------------------------------------------ reports
+class Run:
+    def __init__(self, values):
+        self.values = values
+
+
+def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_noise(tmp_path):
+    from orchestrator import report_mbrl
+    from orchestrator.report import Group, Summary
+
+    def trial(pets, razer_a, razer_b, coverage):
+        values = {"final_coverage": coverage}
+        for row, success, weight in (("pets", pets, 0.0), ("razer_wA_0.1", razer_a, 0.1), ("razer_wA_1", razer_b, 1.0)):
+            values |= {f"frozen/{row}/success_rate": success, f"frozen/{row}/aleatoric_weight": weight,
+                       f"frozen/{row}/falls_rate": 1 - success, f"frozen/{row}/pets": float(row == "pets")}  # fmt: skip
+        return Run(values)
+
+    groups = [
+        Group("bridge_maze", "mbrl", {}, None, {"task_options.wind_max": wind}, trials, 0.0, 0.0, None)
+        for wind, trials in (
+            (10, [trial(0.6, 0.8, 0.9, 0.1), trial(0.5, 0.9, 1.0, 0.2)]),
+            (30, [trial(0.2, 0.7, 0.9, 0.1)]),
+        )
+    ]
+    summary = Summary(groups, "frozen_success", "frozen_best_success_rate", "max", 0)
+    points = report_mbrl.frozen_points(groups[0].trials)
+    assert [(p.row, p.pets, p.aleatoric_weight) for p in points] == [
+        ("pets", True, 0.0),
+        ("razer_wA_0.1", False, 0.1),
+        ("razer_wA_1", False, 1.0),
+    ]
+    mean, sem, n = points[1].values["success_rate"]
+    assert (mean, n) == (pytest.approx(0.85), 2) and sem == pytest.approx(0.05)
+    success = report_mbrl.success_figure(summary)
+    (line, *_) = success.axes[0].lines
+    assert list(line.get_xdata()) == [0.1, 1.0]
+    assert report_mbrl._swept_task_option(summary) == "task_options.wind_max"
+    failures = report_mbrl.drop_rate_figure(summary)
+    labels = sorted(text.get_text() for text in failures.axes[0].get_legend().get_texts())
+    assert labels == ["pets", "razer_wA_0.1", "razer_wA_1"]
+    written = report_mbrl.write_files(summary, tmp_path)
+    assert [p.name for p in written] == ["frozen_success.png", "failure_rate.png", "coverage.png"]
+    curves = report_mbrl.coverage_curves_figure({"pets": [[(0, 0.01), (1, 0.02)]], "razer": [[(0, 0.01), (1, 0.05)]]})
+    assert len(curves.axes[0].lines) == 2
+
+
+# ---------------------------------------------------------------- sweeps
+def test_smoke_and_paper_sweeps_validate():
+    from orchestrator.sweep import load_sweep
+
+    smoke = load_sweep(ROOT / "sweeps/smoke/mbrl.yaml")
+    (trial,) = smoke.trials
+    spec = trial.config.spec()
+    assert MbrlProgram.planned_rounds(spec) >= 2 and trial.config.settings.model.preset == "small"
+    roles = {r.name for r in MbrlProgram.roles_for(spec, 1, smoke.sweep.resources.workers)}
+    assert roles == set(MbrlProgram.role_names)  # the smoke run exercises every role
+    paper = load_sweep(ROOT / "sweeps/paper/razer_bridge_maze.yaml")
+    settings = paper.trials[0].config.settings
+    assert settings.razer.epistemic_weight == 0.05 and settings.frozen.episodes >= 25 and settings.frozen.pets
+    assert len(settings.frozen.aleatoric_weights) >= 3 and settings.model.preset == "bridge_maze"
+    assert (
+        load_sweep(ROOT / "sweeps/paper/razer_noisy_halfcheetah.yaml").trials[0].config.settings.model.preset
+        == "noisy_halfcheetah"
+    )
+
+
+def test_method_is_registered():
+    assert METHODS["mbrl"] is MbrlProgram and MbrlProgram.role_names == ("trainer", "planner")
+
+
+# -------------------------------------------------- through the CLI (slow)
+@pytest.mark.slow
+def test_smoke_sweep_runs_through_the_cli(tmp_path):
+    from helpers import sweep_runs
+
+    from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+
+    result = cli("run", str(ROOT / "sweeps/smoke/mbrl.yaml"), "--quiet", cwd=tmp_path, timeout=600)
+    assert result.returncode == 0, result.stderr
+    parent, (child,) = sweep_runs(default_tracking_uri(tmp_path), "smoke_mbrl")
+    assert parent.status == FINISHED and child.status == FINISHED
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    assert [s for s, _ in tracker.metric_history(child.run_id, "icemlab.round")] == [0, 1, 2, 3, 4]
+    assert [v for _, v in sorted(tracker.metric_history(child.run_id, "weights_version"))] == [1, 2, 3]
+    assert [v for _, v in sorted(tracker.metric_history(child.run_id, "planned_with_version"))] == [1, 2]
+    assert "frozen/pets/success_rate" in child.metrics and "final_coverage" in child.metrics
+    assert {"models", "plots", "checkpoints"} <= set(tracker.list_files(child.run_id))
+    assert "frozen_success.png" in tracker.list_files(parent.run_id)
+
+
+# ------------------------------------------------- service faults (slow)
+FAULT_BASE: dict[str, Any] = {
+    "task_options": {"episode_length": 15},
+    # Many small minibatches: a training call lasts a few seconds, long enough to be killed in.
+    "model": {"preset": "small", "hidden_size": 16, "hidden_layers": 2, "epochs": 400, "batch_size": 8},
+    "planner": {"population": 12, "iterations": 2, "horizon": 4, "elites": 4},
+    "razer": {"epistemic_weight": 0.05},
+    "random_episodes": 1,
+    "iterations": 3,
+}
+
+
+def fault_sweep(directory: Path, name: str, **changes: Any) -> Path:
+    sweep = {
+        "name": name,
+        "task": "bridge_maze",
+        "method": "mbrl",
+        "base": FAULT_BASE | changes,
+        "seeds": [0],
+        # One thread everywhere, as in run_locally: results can be compared bit for bit.
+        "resources": {"threads_per_worker": 1},
+    }
+    path = directory / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(sweep, sort_keys=False))
+    return path
+
+
+def uninterrupted(sweep: Path) -> list:
+    from orchestrator.sweep import load_sweep
+    from workers.methods import run_locally
+
+    return run_locally(MbrlProgram, load_sweep(sweep).trials[0].config.spec())
+
+
+def history(tracker, run_id: str, key: str) -> list[tuple[int, float]]:
+    return sorted(tracker.metric_history(run_id, key))
+
+
+@pytest.fixture
+def local_ray():
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.mark.slow
+def test_killed_trainer_mid_training_resumes_from_the_last_checkpoint(tmp_path, local_ray):
+    """SIGKILL the EnsembleTrainer inside a training call: the round is lost, the loop goes on from the last
+    checkpoint (weights, Adam state and dataset restored) and ends as an uninterrupted run."""
+    import os
+    import signal
+    import threading
+    import time
+
+    import ray
+    from helpers import sweep_runs, wait_for
+
+    from orchestrator.scheduler import SweepScheduler
+    from orchestrator.sweep import load_sweep
+    from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+
+    sweep = fault_sweep(tmp_path, "trainer_kill")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    killed = {}
+
+    def kill_trainer_while_it_trains():
+        def planning_an_iteration():
+            active = scheduler._active
+            if active and active[0].phase == "running" and active[0].round_index >= 2:
+                if active[0].progress.get("text", "").startswith("iteration"):
+                    return active[0]
+            return None
+
+        attempt = wait_for(planning_an_iteration, timeout=300, interval=0.05, what="an iteration being planned")
+        trainer = attempt.group.workers["trainer"][0]
+        pid = ray.get(trainer.pid.remote(), timeout=60)  # idle while the runner plans
+        wait_for(lambda: "training" in attempt.progress.get("text", ""), timeout=300, interval=0.02, what="training")
+        time.sleep(0.3)
+        os.kill(pid, signal.SIGKILL)
+        killed.update(pid=pid, round=attempt.round_index)
+
+    killer = threading.Thread(target=kill_trainer_while_it_trains, daemon=True)
+    killer.start()
+    outcome = scheduler.run()
+    killer.join(timeout=5)
+    assert killed, "the trainer was never killed"
+    assert (outcome.finished, outcome.failed) == (1, 0)
+
+    _, (child,) = sweep_runs(tracker.uri, "trainer_kill")
+    assert child.status == FINISHED and child.attempts == 2
+    assert child.metrics["failures/lost_process"] == 1.0
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
+    assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
+    expected = uninterrupted(sweep)
+    for key in ("dataset_size", "episode_return", "train_nll", "held_out_nll"):
+        got = [v for _, v in history(tracker, child.run_id, key)]
+        assert got == [r.metrics[key] for r in expected if key in r.metrics], key
+
+
+@pytest.mark.slow
+def test_driver_sigkill_then_resume_continues_with_the_same_dataset(tmp_path):
+    """Kill the driver mid-trial; --resume continues from the last completed iteration, nothing twice."""
+    import os
+    import signal
+    from collections import Counter
+
+    from helpers import kill_group, start_cli, sweep_runs, wait_for
+
+    from orchestrator.tracking import FINISHED, RUNNING, Tracker, default_tracking_uri
+
+    sweep = fault_sweep(tmp_path, "crash", iterations=4, model={**FAULT_BASE["model"], "epochs": 20})
+    uri = default_tracking_uri(tmp_path)
+    tracker = Tracker(uri)
+    driver = start_cli("run", str(sweep), "--quiet", cwd=tmp_path)
+    try:
+
+        def two_rounds_in():
+            _, children = sweep_runs(uri, "crash")
+            running = [c for c in children if c.status == RUNNING]
+            return running and len(tracker.logged_rounds(running[0].run_id)) >= 2
+
+        wait_for(two_rounds_in, timeout=300, what="a trial two rounds in")
+        os.kill(driver.pid, signal.SIGKILL)  # the driver only; its Ray processes are orphaned
+        driver.wait(timeout=30)
+    finally:
+        kill_group(driver)
+    _, (before,) = sweep_runs(uri, "crash")
+    assert before.status == RUNNING
+    done_before = len(tracker.logged_rounds(before.run_id))
+
+    result = cli("run", str(sweep), "--resume", "--quiet", cwd=tmp_path, timeout=600)
+    assert result.returncode == 0, result.stderr
+    _, (after,) = sweep_runs(uri, "crash")
+    assert after.run_id == before.run_id and after.status == FINISHED and after.attempts == 2
+    assert [s for s, _ in history(tracker, after.run_id, "icemlab.round")] == list(range(5))
+    for key in ("dataset_size", "episode_return", "weights_version"):
+        steps = [s for s, _ in history(tracker, after.run_id, key)]
+        assert not [s for s, n in Counter(steps).items() if n > 1], key  # no step logged twice
+    expected = uninterrupted(sweep)
+    # The dataset after every iteration is the uninterrupted run's: the resumed rounds start from the same one.
+    assert [v for _, v in history(tracker, after.run_id, "dataset_size")] == [
+        r.metrics["dataset_size"] for r in expected
+    ]
+    assert [v for _, v in history(tracker, after.run_id, "episode_return")] == [
+        r.metrics["episode_return"] for r in expected
+    ]
+    assert after.metrics["final_return"] == expected[-1].summary["final_return"]
+    assert 2 <= done_before < 5
+
+
+def test_trainer_holds_out_the_newest_episode_before_training_on_it():
+    from workers.dynamics.ensemble import Transitions
+    from workers.dynamics.settings import EnsembleConfig
+    from workers.dynamics.trainer import EnsembleTrainer
+
+    rng = np.random.default_rng(0)
+    obs, act = rng.normal(size=(60, 3)), rng.uniform(-1, 1, size=(60, 2))
+    data = Transitions(obs, act, obs + 0.1 * act[:, [0, 1, 0]])
+    config = EnsembleConfig.preset("small", hidden_size=8, epochs=3).model_dump()
+    trainer = EnsembleTrainer(3, 2, config, seed=0)
+    first = trainer.train(Transitions(*(x[:40] for x in data)), 40, seed=1)
+    assert "held_out_nll" not in first.metrics and first.weights.version == 1  # untrained: nothing to hold out
+    before = first.weights.model().evaluate(Transitions(*(x[40:] for x in data)))
+    second = trainer.train(data, 40, seed=2)
+    assert (second.metrics["held_out_nll"], second.metrics["held_out_mse"]) == pytest.approx(before[:2], rel=1e-6)
+    assert second.metrics["weights_version"] == 2 and second.weights.version == 2
+    # State out, state in: a fresh trainer continues identically (weights, Adam moments, version).
+    copy = EnsembleTrainer(3, 2, config, seed=5)
+    copy.load_state_dict(checkpoint.from_bytes(checkpoint.to_bytes(trainer.state_dict())))
+    ours, theirs = copy.train(data, 40, seed=3).metrics, trainer.train(data, 40, seed=3).metrics
+    assert {k: v for k, v in ours.items() if k != "train_seconds"} == {
+        k: v for k, v in theirs.items() if k != "train_seconds"
+    }
+
+
+@pytest.mark.slow
+def test_noisy_halfcheetah_reduced_run_logs_return_and_violation_curves():
+    """Noisy-HalfCheetah (Fig. 36), cut down: the loop with the aleatoric penalty and the ceiling's safety term."""
+    trial = tiny_trial(
+        task="noisy_halfcheetah",
+        task_options={"episode_length": 30, "velocity_threshold": 0.5},
+        model={"preset": "small", "hidden_size": 32, "epochs": 5},
+        planner={"population": 24, "iterations": 2, "horizon": 8},
+        razer={"aleatoric_weight": 0.05, "safety_weight": 50.0, "safety_delta": 0.05},
+        random_episodes=1,
+        iterations=3,
+        frozen={"episodes": 0},
+    )
+    assert [box.dims for box in trial.settings.razer.safety_boxes] == [(0,)]  # the ceiling, from the task
+    program = build(trial)
+    try:
+        reports = run_rounds(program, range(program.total_rounds()))
+    finally:
+        program.close()
+    iterations = [r.metrics for r in reports[1:]]
+    for metrics in iterations:
+        for key in ("episode_return", "safety_violations", "ceiling_violations", "noisy_steps", "cost/c_S", "cost/c_A"):
+            assert math.isfinite(metrics[key]), key
+        assert metrics["steps"] == 30 and metrics["cost/c_A"] > 0
+    assert "coverage" not in iterations[0]  # no coverage grid for this task
+    assert reports[-1].summary["final_return"] == pytest.approx(np.mean([m["episode_return"] for m in iterations]))
