@@ -442,7 +442,9 @@ def test_propagated_states_stay_in_the_widened_data_range():
     start = torch.tensor([1.0, -1.0, 0.5])
     prop = petsus_propagate(growing, start, torch.zeros(2, 30, 2), particles=5, mean_propagation="per_member")
     assert torch.isfinite(prop.particles).all() and torch.isfinite(prop.var_epistemic).all()
-    assert (prop.particles <= model.net.state_high + 1e-6).all() and (prop.particles >= model.net.state_low - 1e-6).all()
+    assert (prop.particles <= model.net.state_high + 1e-6).all() and (
+        prop.particles >= model.net.state_low - 1e-6
+    ).all()
     assert (prop.means <= model.net.state_high + 1e-6).all()
     unclamped = tiny_model(epochs=1, state_margin=None)
     unclamped.train(data)

@@ -95,7 +95,9 @@ class NoisyHalfCheetahEnv(gym.Wrapper):
             raw.set_state(qpos, qvel)
             obs = raw._get_obs()
         reward = float(info["x_velocity"] - CTRL_COST_WEIGHT * np.square(clean).sum())
-        info = dict(info, noisy_step=noisy, applied_action=applied, ceiling_violation=bool(obs[HEIGHT_INDEX] > self.ceiling))
+        info = dict(
+            info, noisy_step=noisy, applied_action=applied, ceiling_violation=bool(obs[HEIGHT_INDEX] > self.ceiling)
+        )
         return obs, reward, terminated, truncated, info
 
 
