@@ -471,7 +471,7 @@ COMMANDS = {
 
 
 def secure_local_ray(args) -> None:
-    """A local Ray that icemlab starts keeps Ray's token authentication and serves no metrics.
+    """A local Ray that icemlab starts keeps Ray's token authentication and is reachable from this machine only.
 
     Its servers listen on every interface; the token is what keeps others out, whatever the environment
     says. Ray's Prometheus exporter answers anyone without a token, and icemlab does not use it.
@@ -484,6 +484,10 @@ def secure_local_ray(args) -> None:
         print(f"icemlab: RAY_AUTH_MODE={mode} ignored: the local Ray keeps token authentication on", file=sys.stderr)
     os.environ["RAY_AUTH_MODE"] = "token"
     os.environ.setdefault("RAY_enable_metrics_collection", "0")
+    # Ray's local-only mode (its default on macOS and Windows): every node address is 127.0.0.1, so the
+    # Prometheus exporters of its autoscaler monitor and dashboard head, which take no token, bind to the
+    # loopback instead of every interface. A local run needs no other machine.
+    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 
 
 def main(argv: list[str] | None = None) -> int:

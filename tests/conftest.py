@@ -18,6 +18,16 @@ os.environ["ICEMLAB_PLUGINS"] = "toy_method"
 os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [ROOT, TESTS, os.environ.get("PYTHONPATH")]))
 
 
+@pytest.fixture(autouse=True)
+def restore_environment():
+    """The command line sets Ray's variables for the process it runs in (cli.secure_local_ray); a test that
+    calls it in-process must not hand them to the Ray a later test starts in this process."""
+    saved = dict(os.environ)
+    yield
+    os.environ.clear()
+    os.environ.update(saved)
+
+
 @pytest.fixture(scope="session")
 def task_bundle():
     """task name -> (task, env, planning model), built on first use."""

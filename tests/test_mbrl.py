@@ -381,6 +381,7 @@ class Run:
 def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_noise(tmp_path):
     from orchestrator import report_mbrl
     from orchestrator.report import Group, Summary
+    from orchestrator.statistics import Interval
 
     def trial(pets, razer_a, razer_b, coverage):
         values = {"final_coverage": coverage}
@@ -390,7 +391,8 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
         return Run(values)
 
     groups = [
-        Group("bridge_maze", "mbrl", {}, None, {"task_options.wind_max": wind}, trials, 0.0, 0.0, None)
+        Group("bridge_maze", "mbrl", {}, None, {"task_options.wind_max": wind}, trials, 0.0, 0.0, Interval(0.0, 0.0, 0.0),
+              None, None, None, None)  # fmt: skip
         for wind, trials in (
             (10, [trial(0.6, 0.8, 0.9, 0.1), trial(0.5, 0.9, 1.0, 0.2)]),
             (30, [trial(0.2, 0.7, 0.9, 0.1)]),
