@@ -86,7 +86,7 @@ class PolicyTrainer:
         self.seed = seed
         self.threads = max(1, int(cpus))
         torch.set_num_threads(self.threads)
-        self.settings = settings or PolicySettings()
+        self.settings = PolicySettings.model_validate(settings if settings is not None else {})
         self.task = task
         self.model = None
         if obs_dim is not None and action_dim is not None:
