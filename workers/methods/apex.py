@@ -188,13 +188,14 @@ class ApexProgram(Program):
     Settings = ApexSettings
     description = "APEX: distil the guided iCEM_pi expert into a policy with DAgger relabeling (chapter 4)"
     metrics = {
-        "policy_return": "policy_return",
-        "expert_return": "expert_return",
-        "policy_success": "policy_success",
-        "expert_success": "expert_success",
-        "evaluation_return": "evaluation_return",
-        "evaluation_success": "evaluation_success",
+        "policy_return": "final_policy_return",
+        "expert_return": "final_expert_return",
+        "policy_success": "final_policy_success",
+        "expert_success": "final_expert_success",
+        "evaluation_return": "final_evaluation_return",
+        "evaluation_success": "final_evaluation_success",
     }
+    """Sweep metric -> summary key: each figure averaged over the last SUMMARY_ITERATIONS iterations."""
     label_paths = {"budget": ("planner.budget",)}
     role_names = ("relabel", "trainer")
 
@@ -395,7 +396,7 @@ class ApexProgram(Program):
             tail = np.array(values[-SUMMARY_ITERATIONS:], dtype=float)
             tail = tail[np.isfinite(tail)]
             if len(tail):
-                summary[key] = float(tail.mean())
+                summary[f"final_{key}"] = float(tail.mean())
         summary["final_weights_version"] = float(self.weights.version if self.weights else 0)
         return summary
 
