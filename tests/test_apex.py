@@ -238,14 +238,25 @@ def test_shift_initialisation_takes_the_policys_action_at_the_last_predicted_sta
     np.testing.assert_array_equal(plain.planner.memory.mean[-1], plain.planner.memory.mean[-2])  # eq. 33: repeat
 
 
-def test_adaptive_expert_executes_the_best_sequence_of_the_last_iteration(workers):
+def test_adaptive_expert_executes_the_best_sequence_of_the_last_iteration(workers, monkeypatch):
+    """f changes with lambda between CEM-iterations, so the planner's best-ever (compared across iterations)
+    is not the executed sequence: the best of the last iteration (kept elites re-weighed) is."""
     worker = workers("point_reach")
     state, observation = start(worker)
     expert = worker.expert(expert_settings("point_reach"), seed=6)
     expert.reset(6)
+    original = expert.planner.plan
+
+    def plan(*args, **kwargs):
+        result = original(*args, **kwargs)  # pretend an earlier iteration's f looked better
+        stale = np.clip(result.plan + 0.5, -1, 1)
+        return result._replace(plan=stale, action=stale[0])
+
+    monkeypatch.setattr(expert.planner, "plan", plan)
     info = expert.act(state, observation, random_policy(worker))
     assert len(info.records) == 2 and all(GUIDANCE in r.lambdas for r in info.records)
     np.testing.assert_array_equal(info.plan, expert.planner.memory.elites[0])
+    np.testing.assert_array_equal(info.action, expert.planner.memory.elites[0][0])
 
 
 def test_relabeling_the_same_states_with_the_same_chunk_seed_gives_identical_labels(workers):
@@ -378,6 +389,35 @@ def test_iterations_report_every_phase_and_keep_the_window():
     assert weights.version == 6 and weights.task == "point_reach"
     summary = reports[-1].summary
     assert summary["final_policy_return"] == pytest.approx(np.mean([r.metrics["policy_return"] for r in reports]))
+
+
+def test_relabeled_episodes_hold_the_experts_labels_at_the_policys_states():
+    spec = trial(iterations=1)
+    calls: dict[str, list] = {}
+
+    class Spy(LocalRoleGroup):
+        def map(self, method, arguments):
+            results = super().map(method, arguments)
+            calls.setdefault(method, []).append((arguments, results))
+            return results
+
+    roles = {s.name: (Spy if s.name == "relabel" else LocalRoleGroup).build(s) for s in ApexProgram.roles_for(spec, 1, {})}
+    program = ApexProgram(spec, roles, 1)
+    program.run_round(0)
+    ((_, policy_episodes),) = calls["policy_episode"]
+    ((chunk_calls, chunks),) = calls["relabel"]
+    assert [len(c[1]) for c in chunk_calls] == [4, 4, 2, 4, 4, 2]  # 10 states per episode in chunks of 4
+    assert len({c[3] for c in chunk_calls}) == 6  # a seed per chunk
+    relabeled = list(program.buffer.episodes)[2:]  # after the 2 expert episodes
+    labels = np.concatenate([c.actions for c in chunks])
+    np.testing.assert_array_equal(np.concatenate([e.actions for e in relabeled]), labels)
+    for episode, rollout in zip(relabeled, policy_episodes):
+        np.testing.assert_array_equal(episode.observations, rollout.trajectory.observations)
+        assert not np.array_equal(episode.actions, rollout.trajectory.actions)  # the expert's, not the policy's
+    for (tree, observations, *_), rollout_index in zip(chunk_calls, [0, 0, 0, 1, 1, 1]):
+        trajectory = policy_episodes[rollout_index].trajectory
+        np.testing.assert_array_equal(tree["goal"], trajectory.sim_states.goal)  # what lives outside MjData
+    program.close()
 
 
 def test_variants_switch_the_phases():
