@@ -353,7 +353,8 @@ def cmd_policy(args) -> int:
     for episode, (total, success) in enumerate(zip(result.returns, result.successes)):
         shown = "" if success is None else f"  success {int(success)}"
         print(f"  episode {episode} (seed {args.seed + episode}): return {total:.2f}{shown}")
-    shown = "" if result.successes[0] is None else f"  success rate {sum(map(bool, result.successes)) / len(result.successes):.2f}"
+    rate = None if result.successes[0] is None else sum(map(bool, result.successes)) / len(result.successes)
+    shown = "" if rate is None else f"  success rate {rate:.2f}"
     print(f"mean return {sum(result.returns) / len(result.returns):.2f}{shown}")
     if result.frames_note:
         print(result.frames_note, file=sys.stderr)

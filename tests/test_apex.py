@@ -7,7 +7,6 @@ expert episode and a trained policy on Fetch and takes minutes: marker slow.
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +30,7 @@ from workers.policy import (
     PolicyWeights,
     RelabelWorker,
     load_policy,
-    relabel_states,
 )
-from workers.rollout import BatchEvaluator
 from workers.tasks import make_task
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +55,9 @@ def workers():
 def random_policy(worker: RelabelWorker, seed: int = 0) -> Policy:
     observation, _ = worker.scratch.reset(seed=0)
     obs_dim = len(worker.task.observe(observation))
-    return Policy(PolicyTrainer(seed, obs_dim=obs_dim, action_dim=worker.task.action_dim, task=worker.task.name).weights())
+    return Policy(
+        PolicyTrainer(seed, obs_dim=obs_dim, action_dim=worker.task.action_dim, task=worker.task.name).weights()
+    )
 
 
 def expert_settings(task_name: str, budget: int = 45, horizon: int = 10, **switches) -> ExpertSettings:
@@ -197,9 +196,11 @@ def test_mean_and_policy_sequence_each_replace_one_sample_of_the_last_iteration(
         expert.reset(4)
         evaluated, means = [], []
         sample = expert.planner._sample
-        monkeypatch.setattr(expert.planner, "_sample", lambda m, s, c, f=sample: (means.append(m.copy()), f(m, s, c))[1])
+        monkeypatch.setattr(
+            expert.planner, "_sample", lambda m, s, c, f=sample, seen=means: (seen.append(m.copy()), f(m, s, c))[1]
+        )
         costs = expert._costs
-        monkeypatch.setattr(expert, "_costs", lambda *a, f=costs: (evaluated.append(a[-1].copy()), f(*a))[1])
+        monkeypatch.setattr(expert, "_costs", lambda *a, f=costs, seen=evaluated: (seen.append(a[-1].copy()), f(*a))[1])
         info = expert.act(state, observation, policy)
         calls[switch] = (evaluated, means, info)
     evaluated, means, info = calls[True]
@@ -352,15 +353,18 @@ def test_trainer_threads_follow_its_cpus():
 
 # ------------------------------------------------------------- program
 def trial(seed: int = 0, **overrides) -> TrialSpec:
-    settings = dict(
-        planner={"budget": 45, "horizon": 8},
-        iterations=3,
-        rollouts=2,
-        window=3,
-        episode_steps=10,
-        relabel_chunk=4,
-        policy={"gradient_steps": 20, "batch_size": 64},
-    ) | overrides
+    settings = (
+        dict(
+            planner={"budget": 45, "horizon": 8},
+            iterations=3,
+            rollouts=2,
+            window=3,
+            episode_steps=10,
+            relabel_chunk=4,
+            policy={"gradient_steps": 20, "batch_size": 64},
+        )
+        | overrides
+    )
     resolved = ApexProgram.resolve(ApexSettings(**settings), make_task("point_reach"))
     return TrialSpec("apex", "point_reach", resolved, seed)
 
@@ -401,7 +405,9 @@ def test_relabeled_episodes_hold_the_experts_labels_at_the_policys_states():
             calls.setdefault(method, []).append((arguments, results))
             return results
 
-    roles = {s.name: (Spy if s.name == "relabel" else LocalRoleGroup).build(s) for s in ApexProgram.roles_for(spec, 1, {})}
+    roles = {
+        s.name: (Spy if s.name == "relabel" else LocalRoleGroup).build(s) for s in ApexProgram.roles_for(spec, 1, {})
+    }
     program = ApexProgram(spec, roles, 1)
     program.run_round(0)
     ((_, policy_episodes),) = calls["policy_episode"]
@@ -414,14 +420,20 @@ def test_relabeled_episodes_hold_the_experts_labels_at_the_policys_states():
     for episode, rollout in zip(relabeled, policy_episodes):
         np.testing.assert_array_equal(episode.observations, rollout.trajectory.observations)
         assert not np.array_equal(episode.actions, rollout.trajectory.actions)  # the expert's, not the policy's
-    for (tree, observations, *_), rollout_index in zip(chunk_calls, [0, 0, 0, 1, 1, 1]):
-        trajectory = policy_episodes[rollout_index].trajectory
+    for (tree, observations, *_), index, offset in zip(chunk_calls, [0, 0, 0, 1, 1, 1], [0, 4, 8] * 2):
+        trajectory = policy_episodes[index].trajectory
         np.testing.assert_array_equal(tree["goal"], trajectory.sim_states.goal)  # what lives outside MjData
+        np.testing.assert_array_equal(
+            tree["physics"], trajectory.sim_states.physics[offset : offset + len(observations)]
+        )
+        np.testing.assert_array_equal(observations, trajectory.observations[offset : offset + len(observations)])
     program.close()
 
 
 def test_variants_switch_the_phases():
-    bc = run_locally(ApexProgram, trial(iterations=1, dagger=False, guidance=False, warm_start=False, policy_samples=False))
+    bc = run_locally(
+        ApexProgram, trial(iterations=1, dagger=False, guidance=False, warm_start=False, policy_samples=False)
+    )
     m = bc[0].metrics
     assert "dataset/relabeled_steps" not in m and "lambda/expert_mean" not in m
     assert m["dataset/steps"] == 20 and m["weights_version"] == 2  # trains twice on expert data only
@@ -499,7 +511,9 @@ def test_shipped_apex_sweeps_resolve_as_published():
         for t in loaded.trials:
             settings = t.config.settings
             assert settings.planner.population_sizes() == [25, 20] and settings.planner.horizon == 30
-            assert settings.c == 0.025 and settings.policy.gradient_steps == 1000 and settings.policy.hidden == [128] * 3
+            assert (
+                settings.c == 0.025 and settings.policy.gradient_steps == 1000 and settings.policy.hidden == [128] * 3
+            )
     door = load_sweep(ROOT / "sweeps" / "paper" / "apex_door_sparse.yaml").trials[0].config.settings
     assert door.rollouts == 2 and door.iterations == 20
     assert load_sweep(ROOT / "sweeps" / "paper" / "apex_fetch.yaml").trials[0].config.settings.rollouts == 5
@@ -528,6 +542,18 @@ def test_policy_command_rolls_a_checkpoint_and_refuses_another_tasks(tmp_path):
     assert refused.returncode == 2 and "not an APEX policy checkpoint" in refused.stderr
 
 
+def test_benchmark_functions_measure_through_role_groups():
+    from workers.policy.benchmark import relabel_rates, relabel_workload, training_rates
+
+    workload = relabel_workload("point_reach", states=6, chunk=3, horizon=5)
+    groups = [LocalRoleGroup("relabel", [RelabelWorker("point_reach")]) for _ in range(2)]
+    rates = relabel_rates(groups, workload)
+    assert rates["workers"] == [1, 1] and rates["states"] == 6 and rates["chunks"] == 2
+    assert all(rate > 0 for rate in rates["states_per_second"]) and rates["ratio_to_first"][0] == 1
+    training = training_rates(6, 2, threads=(1, 2), steps=3, samples=200)
+    assert training["threads"] == [1, 2] and all(rate > 0 for rate in training["steps_per_second"])
+
+
 # ----------------------------------------------------------- Fig. 9
 @pytest.mark.slow
 def test_fig_9_guided_relabeling_has_at_most_0_6_of_plain_icems_action_spread():
@@ -536,7 +562,9 @@ def test_fig_9_guided_relabeling_has_at_most_0_6_of_plain_icems_action_spread():
     worker = RelabelWorker("fetch_pick_place_sparse")
     task = worker.task
     settings = expert_settings("fetch_pick_place_sparse", horizon=30)
-    plain = expert_settings("fetch_pick_place_sparse", horizon=30, guidance=False, warm_start=False, policy_samples=False)
+    plain = expert_settings(
+        "fetch_pick_place_sparse", horizon=30, guidance=False, warm_start=False, policy_samples=False
+    )
     untrained = random_policy(worker)
     episode = worker.expert_episode(0, task.episode_length, untrained.weights, plain).trajectory
     trainer = PolicyTrainer(0, task=task.name, obs_dim=episode.observations.shape[1], action_dim=task.action_dim)

@@ -45,7 +45,7 @@ from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, Ro
 from workers.planning import PlannerConfig
 from workers.policy.expert import ExpertSettings
 from workers.policy.network import PolicyWeights
-from workers.policy.training import PolicySettings, PolicyTrainer
+from workers.policy.training import PolicySettings, PolicyTrainer, TrainReport
 from workers.policy.worker import RelabelWorker
 from workers.tasks import GroundTruthTask, make_task
 
@@ -259,7 +259,8 @@ class ApexProgram(Program):
         transitions = self.buffer.transitions()
         return {"observations": transitions.observations, "actions": transitions.actions}
 
-    def _train(self, label: str, fraction: float, metrics: dict[str, float], cpu: list[float]) -> PolicyWeights:
+    def _train(self, label: str, fraction: float, cpu: list[float]) -> TrainReport:
+        """Train on the current window (one ``share`` of the dataset); the trainer's CPU time joins ``cpu``."""
         self.set_progress(fraction, label)
         trainer = self.roles["trainer"]
         report = trainer.submit(0, "train", trainer.share(self._dataset())).result()
@@ -281,7 +282,9 @@ class ApexProgram(Program):
         self.set_progress(0.0, f"{label} expert")
         phase = time.perf_counter()
         shared = relabel.share(self.weights if expert_settings.uses_policy else None)
-        calls = [(derived_seed(trial.seed, index, "expert", k), self.steps, shared, expert_settings) for k in range(self.n)]
+        calls = [
+            (derived_seed(trial.seed, index, "expert", k), self.steps, shared, expert_settings) for k in range(self.n)
+        ]
         experts = relabel.map("expert_episode", calls)
         metrics["seconds/expert"] = time.perf_counter() - phase
         cpu += [e.cpu_seconds for e in experts]
@@ -293,7 +296,7 @@ class ApexProgram(Program):
 
         # 3. Training on the expert data.
         phase = time.perf_counter()
-        first = self._train(f"{label} training", 0.35, metrics, cpu)
+        first = self._train(f"{label} training", 0.35, cpu)
         seconds_training = time.perf_counter() - phase
         metrics |= {"loss/first_training": first.loss, "loss/first_training_first_batch": first.first_loss}
 
@@ -321,7 +324,7 @@ class ApexProgram(Program):
 
         # 6. Training on expert and relabeled data.
         phase = time.perf_counter()
-        second = self._train(f"{label} training", 0.9, metrics, cpu)
+        second = self._train(f"{label} training", 0.9, cpu)
         seconds_training += time.perf_counter() - phase
         metrics |= {"loss/second_training": second.loss, "loss/second_training_first_batch": second.first_loss}
         self.weights = second.weights
@@ -357,7 +360,9 @@ class ApexProgram(Program):
             Artifact("apex_curves.png", self._curves_png()),
         ]
         done = last
-        return RoundReport(index, metrics, step=index, artifacts=artifacts, done=done, summary=self._summary() if done else {})
+        return RoundReport(
+            index, metrics, step=index, artifacts=artifacts, done=done, summary=self._summary() if done else {}
+        )
 
     def _relabel(self, index: int, rollouts, shared, expert_settings: ExpertSettings, label: str):
         chunk = self.settings.relabel_chunk
@@ -410,14 +415,18 @@ class ApexProgram(Program):
         for key, style, name in ((f"expert_{metric}", "--", "expert"), (f"policy_{metric}", "-", "policy")):
             axis.plot(iterations, self.history.get(key, []), style, marker="o", markersize=3, label=name)
         if any(np.isfinite(self.history.get(f"evaluation_{metric}", [math.nan]))):
-            axis.plot(iterations, self.history[f"evaluation_{metric}"], ":", marker="s", markersize=3, label="evaluation")
+            axis.plot(
+                iterations, self.history[f"evaluation_{metric}"], ":", marker="s", markersize=3, label="evaluation"
+            )
         published = TABLE_9.get((self.trial.task, self.settings.planner.budget or 0), {})
         for key, style in (("expert", "--"), ("policy", "-")):
             if key in published:
                 axis.axhline(published[key], linestyle=style, color="gray", alpha=0.5, linewidth=1)
         axis.set_xlabel("APEX iteration")
         axis.set_ylabel(metric)
-        axis.set_title(f"{self.trial.task} budget {self.settings.planner.budget} seed {self.trial.seed} (gray: Table 9)")
+        axis.set_title(
+            f"{self.trial.task} budget {self.settings.planner.budget} seed {self.trial.seed} (gray: Table 9)"
+        )
         axis.grid(alpha=0.3)
         axis.legend(fontsize=8)
         figure.tight_layout()

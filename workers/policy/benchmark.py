@@ -55,7 +55,9 @@ def relabel_workload(
     chunks = []
     for start in range(0, len(trajectory), chunk):
         stop = min(start + chunk, len(trajectory))
-        tree = {name: getattr(sim, name)[start:stop] for name in sim.PER_STEP} | {"model_params": dict(sim.model_params)}
+        tree = {name: getattr(sim, name)[start:stop] for name in sim.PER_STEP} | {
+            "model_params": dict(sim.model_params)
+        }
         if sim.goal is not None:
             tree["goal"] = sim.goal
         chunks.append((tree, trajectory.observations[start:stop]))

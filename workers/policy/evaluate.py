@@ -54,7 +54,9 @@ def _render_env(task, steps: int):
     os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         register_robotics_envs()
-        env = gym.make(task.env_id, max_episode_steps=steps, render_mode="rgb_array", width=240, height=180, **task.env_kwargs)
+        env = gym.make(
+            task.env_id, max_episode_steps=steps, render_mode="rgb_array", width=240, height=180, **task.env_kwargs
+        )
         env.reset(seed=0)
         if env.render() is None:
             raise RuntimeError("the environment returned no frame")

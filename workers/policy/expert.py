@@ -52,20 +52,30 @@ from workers.tasks.base import SimStates
 class ExpertSettings(BaseModel):
     """The expert of APEX: iCEM_pi with the guided cost; what expert and relabeling workers are told."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
     planner: PlannerConfig
     """A resolved planner config (budget, horizon, iCEM switches)."""
     warm_start: bool = True
+    """Mean from the policy's rollout at t = 0; the shifted mean's last action from the policy afterwards."""
     policy_samples: bool = True
+    """The policy's own h-step sequence replaces one sample of the last CEM-iteration."""
     guidance: bool = True
+    """Weigh in C_1 = sum_t ||a_t - pi(s_t)||^2."""
     adaptive_lambda: bool = True
+    """lambda_j by eq. 17 at every CEM-iteration, else the fixed values."""
     c: float = Field(0.025, ge=0)
+    """c_1 of eq. 17."""
     fixed_lambda: float = Field(1.0, ge=0)
+    """lambda_1 when not adaptive."""
     action_norm: bool = False
+    """Weigh in C_2 = sum_t ||a_t||."""
     c_action_norm: float = Field(0.025, ge=0)
+    """c_2 of eq. 17."""
     fixed_lambda_action_norm: float = Field(0.0, ge=0)
+    """lambda_2 when not adaptive."""
     epsilon: float = Field(1e-6, gt=0)
+    """eps of eq. 17."""
 
     @property
     def uses_policy(self) -> bool:
@@ -117,7 +127,9 @@ class ICemPi:
             terms.append(AuxiliaryTerm(GUIDANCE, settings.adaptive_lambda, settings.c, settings.fixed_lambda))
         if settings.action_norm:
             terms.append(
-                AuxiliaryTerm(ACTION_NORM, settings.adaptive_lambda, settings.c_action_norm, settings.fixed_lambda_action_norm)
+                AuxiliaryTerm(
+                    ACTION_NORM, settings.adaptive_lambda, settings.c_action_norm, settings.fixed_lambda_action_norm
+                )
             )
         self.objective = GuidedObjective(settings.planner.elites, terms, settings.epsilon) if terms else None
         self.planner = CEMPlanner(settings.planner, task.action_dim, seed, self.objective or main_cost)
@@ -282,7 +294,9 @@ def run_policy_episode(task: GroundTruthTask, env: gym.Env, policy: Policy, seed
         current = task.observe(outcome.observation)
         recorder.add(action, outcome.reward, current, state=state, goals=task.goals(outcome.observation))
         flags.append(outcome.goal_achieved)
-    return PolicyEpisode(recorder.finish(_success(task, flags)), time.perf_counter() - started, time.process_time() - cpu)
+    return PolicyEpisode(
+        recorder.finish(_success(task, flags)), time.perf_counter() - started, time.process_time() - cpu
+    )
 
 
 def relabel_states(

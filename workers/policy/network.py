@@ -85,7 +85,9 @@ class Policy:
         arrays = weights.arrays
         self.version = weights.version
         self.task = weights.task
-        self._layers = [(arrays[f"w{i}"].astype(np.float64), arrays[f"b{i}"].astype(np.float64)) for i in range(weights.layers)]
+        self._layers = [
+            (arrays[f"w{i}"].astype(np.float64), arrays[f"b{i}"].astype(np.float64)) for i in range(weights.layers)
+        ]
         self._mean = arrays["input_mean"].astype(np.float64)
         self._std = arrays["input_std"].astype(np.float64)
 

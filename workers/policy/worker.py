@@ -60,7 +60,9 @@ class RelabelWorker:
     def _policy(weights: PolicyWeights | None) -> Policy | None:
         return None if weights is None else Policy(weights)
 
-    def expert_episode(self, seed: int, steps: int, weights: PolicyWeights | None, settings: ExpertSettings) -> ExpertEpisode:
+    def expert_episode(
+        self, seed: int, steps: int, weights: PolicyWeights | None, settings: ExpertSettings
+    ) -> ExpertEpisode:
         """An expert episode from ``reset(seed)``; the policy guides it as the settings say."""
         policy = self._policy(weights) if settings.uses_policy else None
         return run_expert_episode(self.task, self.env, self.expert(settings, seed), policy, seed, steps)
