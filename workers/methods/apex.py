@@ -46,7 +46,7 @@ from workers.planning import PlannerConfig
 from workers.policy.expert import ExpertSettings
 from workers.policy.network import PolicyWeights
 from workers.policy.training import PolicySettings, PolicyTrainer, TrainReport
-from workers.policy.worker import RelabelWorker
+from workers.policy.worker import RelabelWorker, states_chunk
 from workers.tasks import GroundTruthTask, make_task
 
 TABLE_10_ROLLOUTS: dict[str, int] = {
@@ -197,6 +197,8 @@ class ApexProgram(Program):
     }
     """Sweep metric -> summary key: each figure averaged over the last SUMMARY_ITERATIONS iterations."""
     label_paths = {"budget": ("planner.budget",)}
+    curves = ("expert_return", "policy_return", "expert_success", "policy_success", "evaluation_success")
+    """Per-iteration metrics reports draw against the iteration (Fig. 14; used by the core's reports)."""
     role_names = ("relabel", "trainer")
 
     settings: ApexSettings
@@ -372,10 +374,7 @@ class ApexProgram(Program):
             states = trajectory.sim_states
             for start in range(0, len(trajectory), chunk):
                 stop = min(start + chunk, len(trajectory))
-                tree = {name: getattr(states, name)[start:stop] for name in states.PER_STEP}
-                tree |= {"model_params": dict(states.model_params)}
-                if states.goal is not None:
-                    tree["goal"] = states.goal
+                tree = states_chunk(states, start, stop)
                 seed = derived_seed(self.trial.seed, index, "relabel", len(calls))
                 calls.append((tree, trajectory.observations[start:stop], shared, seed, expert_settings))
                 spans.append((episode, start, stop))

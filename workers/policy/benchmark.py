@@ -41,7 +41,7 @@ def relabel_workload(
     task_name: str, states: int = 40, chunk: int = 10, budget: int = 45, horizon: int = 30, seed: int = 0
 ) -> RelabelWorkload:
     """A policy episode of a randomly initialised policy, cut into chunks (built in this process)."""
-    from workers.policy.worker import RelabelWorker
+    from workers.policy.worker import RelabelWorker, states_chunk
 
     worker = RelabelWorker(task_name)
     try:
@@ -55,11 +55,7 @@ def relabel_workload(
     chunks = []
     for start in range(0, len(trajectory), chunk):
         stop = min(start + chunk, len(trajectory))
-        tree = {name: getattr(sim, name)[start:stop] for name in sim.PER_STEP} | {
-            "model_params": dict(sim.model_params)
-        }
-        if sim.goal is not None:
-            tree["goal"] = sim.goal
+        tree = states_chunk(sim, start, stop)
         chunks.append((tree, trajectory.observations[start:stop]))
     from workers.tasks import make_task
 

@@ -33,6 +33,15 @@ from workers.tasks import make_task
 from workers.tasks.base import SimStates
 
 
+EPISODE_FIELDS = ("model_params", "goal")
+"""Fields of a SimStates tree fixed within an episode; all others are per-step arrays."""
+
+
+def states_chunk(states: SimStates, start: int, stop: int) -> dict[str, Any]:
+    """The SimStates tree of steps ``start:stop`` of an episode (what a relabeling call takes)."""
+    return {k: (v if k in EPISODE_FIELDS else v[start:stop]) for k, v in states.to_tree().items()}
+
+
 class RelabelWorker:
     """Expert episodes, policy episodes and DAgger relabeling of one task.
 
