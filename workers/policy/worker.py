@@ -32,7 +32,6 @@ from workers.rollout import BatchEvaluator
 from workers.tasks import make_task
 from workers.tasks.base import SimStates
 
-
 EPISODE_FIELDS = ("model_params", "goal")
 """Fields of a SimStates tree fixed within an episode; all others are per-step arrays."""
 
