@@ -146,6 +146,21 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (no Ray)")
     bench.add_argument("--json", action="store_true", help="print the figures as one JSON document")
 
+    policy = commands.add_parser(
+        "policy",
+        help="roll a trained APEX policy in the real environment",
+        description="Roll a policy checkpoint of an APEX trial (artifact policy/policy_NNNN.npz of its run) in "
+        "the task's real environment and print return and success per episode. Refuses a checkpoint of "
+        "another task. --frames writes a strip of frames of the first episode where MuJoCo renders headless "
+        "(MUJOCO_GL=egl or osmesa).",
+    )
+    policy.add_argument("checkpoint", type=Path, help="policy checkpoint (.npz)")
+    policy.add_argument("--task", default=None, help="the task to roll it on (default: the checkpoint's)")
+    policy.add_argument("--episodes", type=int, default=1, help="episodes (seeds SEED, SEED+1, ...)")
+    policy.add_argument("--seed", type=int, default=0, help="seed of the first episode")
+    policy.add_argument("--steps", type=int, default=None, help="steps per episode (default: the task's)")
+    policy.add_argument("--frames", type=Path, default=None, metavar="PNG", help="write a frame strip here")
+
     commands.add_parser("tasks", help="list the tasks", description="List the tasks a sweep can name.")
     commands.add_parser(
         "schema",
@@ -439,6 +454,30 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_policy(args) -> int:
+    from workers.policy.evaluate import PolicyCheckpointError, roll_policy
+    from workers.tasks import TASKS, unknown_task_message
+
+    if args.task is not None and args.task not in TASKS:
+        print(f"icemlab: {unknown_task_message(args.task)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        result = roll_policy(args.checkpoint, args.task, args.episodes, args.seed, args.steps, args.frames)
+    except PolicyCheckpointError as error:
+        print(f"icemlab: {error}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(f"{result.task}: policy version {result.version}, {len(result.returns)} episode(s)")
+    for episode, (total, success) in enumerate(zip(result.returns, result.successes)):
+        shown = "" if success is None else f"  success {int(success)}"
+        print(f"  episode {episode} (seed {args.seed + episode}): return {total:.2f}{shown}")
+    rate = None if result.successes[0] is None else sum(map(bool, result.successes)) / len(result.successes)
+    shown = "" if rate is None else f"  success rate {rate:.2f}"
+    print(f"mean return {sum(result.returns) / len(result.returns):.2f}{shown}")
+    if result.frames_note:
+        print(result.frames_note, file=sys.stderr)
+    return 0
+
+
 def cmd_tasks(args) -> int:
     from workers.tasks import TASKS
 
@@ -465,6 +504,7 @@ COMMANDS = {
     "reproduce": cmd_reproduce,
     "ui": cmd_ui,
     "bench": cmd_bench,
+    "policy": cmd_policy,
     "tasks": cmd_tasks,
     "schema": cmd_schema,
 }

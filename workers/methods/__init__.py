@@ -17,10 +17,11 @@ from workers.methods.base import (
     TrialSpec,
     run_locally,
 )
+from workers.methods.apex import ApexProgram, ApexSettings
 from workers.methods.mbrl import MbrlProgram, MbrlSettings
 from workers.methods.mpc import MpcProgram, MpcSettings
 
-METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram, MbrlProgram)}
+METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram, ApexProgram, MbrlProgram)}
 """Registry: method name -> program class."""
 
 DEFAULT_METHOD = "mpc"
@@ -41,6 +42,8 @@ for _module in filter(None, (m.strip() for m in os.environ.get(PLUGINS_VARIABLE,
     importlib.import_module(_module)
 
 __all__ = [
+    "ApexProgram",
+    "ApexSettings",
     "BUILTIN_METHODS",
     "DEFAULT_METHOD",
     "METHODS",

@@ -103,6 +103,11 @@ class Door(_AdroitTask):
 
     use_palm_term = True
     """Whether the reward includes -0.1 ||palm - handle|| (False: Door sparse)."""
+    batch_observations = True
+
+    def observations(self, model, batch):
+        q = self._batch_quantities(model, batch)
+        return self._observation(model, self.qpos(model, batch.states), q)
 
     def _quantities(self, model, frames, qpos, qvel):
         hinge = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "door_hinge")
@@ -192,6 +197,13 @@ class Relocate(_AdroitTask):
     )
     per_episode_model_fields = ("body_pos", "site_pos")  # reset moves the ball and the target
     description = "Adroit hand moves a ball to a target, DAPG reward (200 steps)"
+    batch_observations = True
+
+    def observations(self, model, batch):
+        q = self._batch_quantities(model, batch)
+        ball, palm, target = q["ball"], q["palm"], q["target"]
+        qpos = self.qpos(model, batch.states)
+        return np.concatenate([qpos[..., :-6], palm - ball, palm - target, ball - target], axis=-1)
 
     def _quantities(self, model, frames, qpos, qvel):
         return {

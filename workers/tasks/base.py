@@ -241,6 +241,9 @@ class GroundTruthTask(ABC):
     """Whether the task defines a success criterion."""
     description: ClassVar[str] = ""
     """One line for ``icemlab tasks`` and error messages."""
+    batch_observations: ClassVar[bool] = False
+    """Whether :meth:`observations` computes the observations of simulated batches in numpy (else callers
+    replay each step's last physics substep in a real environment: workers/policy/observations.py)."""
 
     def __init__(self, **options: Any):
         self.options = self.Options(**options)
@@ -359,6 +362,15 @@ class GroundTruthTask(ABC):
         if isinstance(observation, dict):
             return np.concatenate([np.ravel(observation["observation"]), np.ravel(observation["desired_goal"])])
         return np.asarray(observation, dtype=np.float64).ravel()
+
+    def observations(self, model: mujoco.MjModel, batch: RolloutBatch) -> np.ndarray:
+        """(N, h, obs_dim) the observation vector (:meth:`observe`) after every step of a simulated batch,
+        equal to what the real environment reports after the same steps (tasks with :attr:`batch_observations`).
+
+        Environments read some derived quantities (site positions, Jacobians) as the forward pass left them
+        before the last substep's integration; the task's frames record exactly those values.
+        """
+        raise NotImplementedError(f"{self.name} has no vectorised observations; replay them in an environment")
 
     def goals(self, observation: Any) -> tuple[np.ndarray, np.ndarray] | None:
         """(achieved goal, desired goal) of a goal-conditioned observation, else None (for HER)."""

@@ -37,6 +37,11 @@ class HalfCheetahRunning(GroundTruthTask):
 
     ctrl_cost_weight = 0.1
     """Weight of ||a||^2 in gymnasium's HalfCheetah reward."""
+    batch_observations = True
+
+    def observations(self, model: mujoco.MjModel, batch: RolloutBatch) -> np.ndarray:
+        # HalfCheetah-v5: qpos without the root x position, then qvel; both read from the state.
+        return np.concatenate([self.qpos(model, batch.states)[..., 1:], self.qvel(model, batch.states)], axis=-1)
 
     def controls(self, model: mujoco.MjModel, state: SimState, actions: np.ndarray) -> np.ndarray:
         return self._with_mocap(state, actions)

@@ -66,6 +66,12 @@ class PointReach(GroundTruthTask):
     colored_noise_beta = 1.0
     frames = (Frame("pos", "site", "tip"),)
     description = "tiny point mass reaching a goal, for tests and smoke runs (50 steps)"
+    batch_observations = True
+
+    def observations(self, model, batch):
+        tip = batch.frames[..., self.frame_slice("tip")]
+        offset = (np.broadcast_to(batch.goal, tip.shape) - tip)[..., :2]
+        return np.concatenate([self.qpos(model, batch.states), self.qvel(model, batch.states), offset], axis=-1)
 
     def _goal(self, env: gym.Env) -> np.ndarray:
         return env.unwrapped.goal.copy()

@@ -1,0 +1,447 @@
+"""Chapter 4 as a method: APEX, adaptive policy extraction from the iCEM expert (Alg. 3).
+
+One round is one APEX iteration:
+
+1. **expert**: n episodes of the guided iCEM_pi expert (workers/policy/expert.py) in the real
+   environment, in parallel on the ``relabel`` workers, guided by the current policy;
+2. their (observation, action) pairs join the dataset (the latest W x n rollouts);
+3. **training** on the ``trainer`` worker (1000 gradient steps, the network never reset);
+4. **policy**: n episodes of the trained policy, recording the simulator state of every step;
+5. **relabeling** (DAgger): every state the policy visited gets the action of the same guided,
+   warm-started expert at the same budget, planned from the recorded simulator state (goals,
+   mocap targets and randomised model parameters included) on the ``relabel`` workers, in
+   chunks of consecutive states; the relabeled episodes join the dataset;
+6. **training** again.
+
+The ``relabel`` role is stateless: every call is a pure function of its arguments (a chunk is
+seeded by trial seed, iteration and chunk index), so a lost worker is restarted and its call
+retried with the same labels. The ``trainer`` is stateful; its state is part of the
+checkpoint, so a lost trainer costs the iteration in flight and the trial resumes from the last
+completed one. Every switch of the chapter's ablations and baselines (Fig. 13, 15) is a setting.
+
+Choices where the thesis leaves room (see also workers/policy/*):
+
+* A *rollout* of the window is an expert or a relabeled episode; the dataset holds the latest
+  ``window x rollouts`` of them (Table 11 gives W per task; n from Table 10).
+* Without DAgger the second training still runs, on the expert data alone, so that every
+  variant takes the same number of gradient steps per iteration (App. C.2).
+* The first iteration's expert is guided by the randomly initialised policy (Alg. 3 line 1;
+  with adaptive weights a weak policy is ignored until the main cost varies among elites).
+* Relabeling runs Alg. 2 over each chunk of consecutive states: the chunk's first state is
+  planned as t = 0 (warm start from the policy's rollout), later ones with shift-initialisation.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from workers.data import EpisodeBuffer, Trajectory
+from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec
+from workers.planning import PlannerConfig
+from workers.policy.expert import ExpertSettings
+from workers.policy.network import PolicyWeights
+from workers.policy.training import PolicySettings, PolicyTrainer, TrainReport
+from workers.policy.worker import RelabelWorker, states_chunk
+from workers.tasks import GroundTruthTask, make_task
+
+TABLE_10_ROLLOUTS: dict[str, int] = {
+    "halfcheetah_running": 1,
+    "humanoid_standup": 1,
+    "door": 10,
+    "door_sparse": 10,
+    "fetch_pick_place_sparse": 25,
+}
+"""Rollouts per iteration n (Table 10); other tasks default to 1."""
+TABLE_11_WINDOW: dict[str, int] = {
+    "halfcheetah_running": 50,
+    "humanoid_standup": 100,
+    "fetch_pick_place_sparse": 150,
+    "door": 100,
+    "door_sparse": 100,
+}
+"""W of Table 11: the policy trains on the latest W x n rollouts; other tasks default to 50."""
+CHAPTER_4_EPISODE_STEPS: dict[str, int] = {"humanoid_standup": 500}
+"""Episode lengths that chapter 4 changes (section 4.4: Humanoid standup runs 500 steps)."""
+TABLE_9: dict[tuple[str, int], dict[str, float]] = {
+    ("halfcheetah_running", 45): {"expert": 5556, "policy": 4847, "icem": 3488},
+    ("halfcheetah_running", 100): {"expert": 7202, "policy": 5596, "icem": 5235.9},
+    ("halfcheetah_running", 300): {"expert": 9310, "policy": 6218, "icem": 7632.54},
+    ("humanoid_standup", 45): {"expert": 149.0e3, "policy": 73.5e3, "icem": 146.3e3},
+    ("humanoid_standup", 100): {"expert": 173.7e3, "policy": 80.5e3, "icem": 182.2e3},
+    ("humanoid_standup", 300): {"expert": 207.3e3, "policy": 88.7e3, "icem": 202.4e3},
+    ("fetch_pick_place_sparse", 45): {"expert": 0.893, "icem": 0.67},  # the policy's 0.0311 is a misprint
+    ("fetch_pick_place_sparse", 100): {"expert": 0.947, "policy": 0.770, "icem": 0.81},
+    ("door_sparse", 45): {"expert": 1.0, "policy": 0.99, "icem": 1.0},
+}
+"""Table 9: APEX expert and policy (returns, success rates for Fetch and Door) and plain iCEM, by budget."""
+
+TRAINER_CPUS = 0.5
+"""CPUs the trainer reserves. The phases of an iteration run one after another, so the trainer computes
+only while the relabel workers wait; half a CPU lets a trial with one relabel worker fit on two cores.
+torch runs max(1, int(cpus)) threads."""
+RUNNER_CPUS = 0.5
+"""CPUs the program's own process reserves: it coordinates and never computes during a phase."""
+SUMMARY_ITERATIONS = 5
+"""The summary averages the last this many iterations (the issue's 'mean of the last 5 iterations')."""
+
+
+class ApexSettings(MethodSettings):
+    """APEX (thesis chapter 4, Alg. 3): distil the guided iCEM_pi expert into a policy, with DAgger."""
+
+    planner: PlannerConfig = PlannerConfig()
+    """The expert's planner (iCEM; budget 45, 100 or 300 in Table 9; horizon 30)."""
+    iterations: int = Field(10, ge=1)
+    """APEX iterations (rounds) of the trial; the thesis does not give how many it ran."""
+    rollouts: int | None = Field(None, ge=1)
+    """Rollouts per iteration n: expert episodes and policy episodes each (default: Table 10 for the task)."""
+    window: int | None = Field(None, ge=1)
+    """W: the policy trains on the latest W x n rollouts, expert and relabeled episodes (default: Table 11)."""
+    episode_steps: int | None = Field(None, ge=1)
+    """Steps per episode (default: the task's; Humanoid standup 500 as in section 4.4)."""
+    policy: PolicySettings = PolicySettings()
+    """The policy network and its training (Table 11)."""
+    dagger: bool = True
+    """Relabel the states the policy visits with the expert and train on them too (Alg. 3 lines 9-12)."""
+    warm_start: bool = True
+    """iCEM_pi warm start: the mean from the policy's rollout at t = 0, the shifted mean's last action from the
+    policy afterwards (off: plain iCEM initialisation, App. C.2)."""
+    policy_samples: bool = True
+    """Put the policy's own h-step sequence among the last CEM-iteration's samples (replacing one)."""
+    guidance: bool = True
+    """Add the guidance cost lambda_1 sum_t ||a_t - pi(s_t)||^2 (eq. 15)."""
+    adaptive_lambda: bool = True
+    """lambda by eq. 17 at every CEM-iteration; off: the fixed values (iCEM_pi-GPS, APEX lambda-fixed)."""
+    c: float = Field(0.025, ge=0)
+    """c_1 of eq. 17 for the guidance term (Table 10: 0.025)."""
+    fixed_lambda: float = Field(1.0, ge=0)
+    """lambda_1 when not adaptive (the thesis tuned it per task and does not give it)."""
+    action_norm: bool = False
+    """Add the action-norm cost lambda_2 sum_t ||a_t|| (eq. 16)."""
+    c_action_norm: float = Field(0.025, ge=0)
+    """c_2 of eq. 17 for the action-norm term."""
+    fixed_lambda_action_norm: float = Field(0.01, ge=0)
+    """lambda_2 when not adaptive."""
+    epsilon: float = Field(1e-6, gt=0)
+    """eps of eq. 17 (not given in the thesis)."""
+    relabel_chunk: int = Field(100, ge=1)
+    """Consecutive states per relabeling call (the unit of work spread over the relabel workers)."""
+    evaluation_episodes: int = Field(0, ge=0)
+    """Extra policy episodes after each iteration's last training (fixed seeds), e.g. 20 for Table 9."""
+    evaluate_every: int = Field(1, ge=1)
+    """Evaluate every this many iterations (and after the last)."""
+
+    def expert_settings(self) -> ExpertSettings:
+        """What the expert and relabeling workers are told."""
+        return ExpertSettings(
+            planner=self.planner,
+            warm_start=self.warm_start,
+            policy_samples=self.policy_samples,
+            guidance=self.guidance,
+            adaptive_lambda=self.adaptive_lambda,
+            c=self.c,
+            fixed_lambda=self.fixed_lambda,
+            action_norm=self.action_norm,
+            c_action_norm=self.c_action_norm,
+            fixed_lambda_action_norm=self.fixed_lambda_action_norm,
+            epsilon=self.epsilon,
+        )
+
+
+def derived_seed(trial_seed: int, iteration: int, kind: str, index: int) -> int:
+    """Seed of one unit of work: expert or policy episode, relabeling chunk, evaluation episode."""
+    code = {"expert": 1, "policy": 2, "relabel": 3, "evaluation": 4}[kind]
+    if kind == "evaluation":
+        iteration = 0  # the same evaluation episodes at every iteration
+    return int(np.random.SeedSequence([trial_seed, iteration, code, index]).generate_state(1)[0] % 2**31)
+
+
+def lambda_statistics(values: np.ndarray, prefix: str) -> dict[str, float]:
+    """Mean, median, max and fraction of zeros of lambda over a phase's CEM-iterations."""
+    if len(values) == 0:
+        return {}
+    return {
+        f"{prefix}_mean": float(np.mean(values)),
+        f"{prefix}_median": float(np.median(values)),
+        f"{prefix}_max": float(np.max(values)),
+        f"{prefix}_zero_fraction": float(np.mean(values == 0)),
+    }
+
+
+def _replaced(trajectory: Trajectory, **changes: Any) -> Trajectory:
+    # Trajectory defines __len__ (its steps), which breaks NamedTuple._replace.
+    return Trajectory(**{**trajectory._asdict(), **changes})
+
+
+def _without_states(trajectory: Trajectory) -> Trajectory:
+    return _replaced(trajectory, sim_states=None)
+
+
+class ApexProgram(Program):
+    """APEX iterations on one task (chapter 4, Table 9, Fig. 13-16)."""
+
+    name = "apex"
+    Settings = ApexSettings
+    description = "APEX: distil the guided iCEM_pi expert into a policy with DAgger relabeling (chapter 4)"
+    metrics = {
+        "policy_return": "final_policy_return",
+        "expert_return": "final_expert_return",
+        "policy_success": "final_policy_success",
+        "expert_success": "final_expert_success",
+        "evaluation_return": "final_evaluation_return",
+        "evaluation_success": "final_evaluation_success",
+    }
+    """Sweep metric -> summary key: each figure averaged over the last SUMMARY_ITERATIONS iterations."""
+    label_paths = {"budget": ("planner.budget",)}
+    curves = ("expert_return", "policy_return", "expert_success", "policy_success", "evaluation_success")
+    """Per-iteration metrics reports draw against the iteration (Fig. 14; used by the core's reports)."""
+    role_names = ("relabel", "trainer")
+
+    settings: ApexSettings
+
+    # ---------------------------------------------------------- declaration
+    @classmethod
+    def resolve(cls, settings: ApexSettings, task: GroundTruthTask) -> ApexSettings:
+        name = task.name
+        return settings.model_copy(
+            update={
+                "planner": settings.planner.resolved(task.colored_noise_beta),
+                "rollouts": settings.rollouts or TABLE_10_ROLLOUTS.get(name, 1),
+                "window": settings.window or TABLE_11_WINDOW.get(name, 50),
+                "episode_steps": settings.episode_steps or CHAPTER_4_EPISODE_STEPS.get(name, task.episode_length),
+            }
+        )
+
+    @classmethod
+    def roles_for(cls, trial: TrialSpec, unit_cpus: int, counts) -> list[RoleSpec]:
+        settings = trial.settings
+        relabel = {"task_name": trial.task, "task_options": settings.task_options, "threads": unit_cpus}
+        trainer = {"seed": trial.seed, "settings": settings.policy, "task": trial.task, "cpus": TRAINER_CPUS}
+        return [
+            RoleSpec("relabel", RelabelWorker, counts.get("relabel", 1), unit_cpus, relabel),
+            RoleSpec("trainer", PolicyTrainer, 1, TRAINER_CPUS, trainer, stateful=True),
+        ]
+
+    @classmethod
+    def runner_cpus(cls, trial: TrialSpec, unit_cpus: int) -> float:  # type: ignore[override]
+        return RUNNER_CPUS
+
+    @classmethod
+    def labels(cls, trial: TrialSpec) -> dict[str, str]:
+        return {"budget": str(trial.settings.planner.budget)}
+
+    @classmethod
+    def planned_rounds(cls, trial: TrialSpec) -> int:
+        return trial.settings.iterations
+
+    # ------------------------------------------------------------------ run
+    def __init__(self, trial: TrialSpec, roles, cpus: int):
+        super().__init__(trial, roles, cpus)
+        settings = trial.settings
+        if settings.rollouts is None or settings.window is None or settings.episode_steps is None:
+            raise ValueError("ApexProgram needs resolved settings (ApexProgram.resolve)")
+        self.settings = settings
+        self.task = make_task(trial.task, settings.task_options)
+        env = self.task.make_env()
+        try:
+            self.obs_dim = len(self.task.reset(env, trial.seed))
+        finally:
+            env.close()
+        self.n = settings.rollouts
+        self.steps = settings.episode_steps
+        self.buffer = EpisodeBuffer(settings.window * settings.rollouts)
+        self.weights: PolicyWeights | None = None
+        self.history: dict[str, list[float]] = {}
+
+    def _dataset(self) -> dict[str, np.ndarray]:
+        transitions = self.buffer.transitions()
+        return {"observations": transitions.observations, "actions": transitions.actions}
+
+    def _train(self, label: str, fraction: float, cpu: list[float]) -> TrainReport:
+        """Train on the current window (one ``share`` of the dataset); the trainer's CPU time joins ``cpu``."""
+        self.set_progress(fraction, label)
+        trainer = self.roles["trainer"]
+        report = trainer.submit(0, "train", trainer.share(self._dataset())).result()
+        cpu.append(report.cpu_seconds)
+        return report
+
+    def run_round(self, index: int) -> RoundReport:
+        settings, trial = self.settings, self.trial
+        relabel, trainer = self.roles["relabel"], self.roles["trainer"]
+        expert_settings = settings.expert_settings()
+        label = f"it {index + 1}/{settings.iterations}"
+        started = time.perf_counter()
+        cpu: list[float] = []
+        metrics: dict[str, float] = {}
+        if self.weights is None:
+            self.weights = trainer.submit(0, "initialize", self.obs_dim, self.task.action_dim).result()
+
+        # 1-2. Expert episodes, guided by the current policy.
+        self.set_progress(0.0, f"{label} expert")
+        phase = time.perf_counter()
+        shared = relabel.share(self.weights if expert_settings.uses_policy else None)
+        calls = [
+            (derived_seed(trial.seed, index, "expert", k), self.steps, shared, expert_settings) for k in range(self.n)
+        ]
+        experts = relabel.map("expert_episode", calls)
+        metrics["seconds/expert"] = time.perf_counter() - phase
+        cpu += [e.cpu_seconds for e in experts]
+        self.buffer.add([_without_states(e.trajectory) for e in experts])
+        metrics |= self._episode_metrics("expert", [e.trajectory for e in experts])
+        metrics |= lambda_statistics(np.concatenate([e.lambdas for e in experts]), "lambda/expert")
+        metrics["expert_trajectories_per_step"] = float(np.mean([e.trajectories / self.steps for e in experts]))
+        metrics["weights_version/expert"] = float(self.weights.version)
+
+        # 3. Training on the expert data.
+        phase = time.perf_counter()
+        first = self._train(f"{label} training", 0.35, cpu)
+        seconds_training = time.perf_counter() - phase
+        metrics |= {"loss/first_training": first.loss, "loss/first_training_first_batch": first.first_loss}
+
+        # 4. Policy episodes, recording the simulator states.
+        self.set_progress(0.45, f"{label} policy")
+        phase = time.perf_counter()
+        shared = relabel.share(first.weights)
+        calls = [(derived_seed(trial.seed, index, "policy", k), self.steps, shared) for k in range(self.n)]
+        rollouts = relabel.map("policy_episode", calls)
+        metrics["seconds/policy"] = time.perf_counter() - phase
+        cpu += [r.cpu_seconds for r in rollouts]
+        metrics |= self._episode_metrics("policy", [r.trajectory for r in rollouts])
+        metrics["weights_version/policy"] = float(first.weights.version)
+
+        # 5. DAgger: relabel every visited state with the same expert.
+        phase = time.perf_counter()
+        if settings.dagger:
+            relabeled, lambdas, chunk_cpu = self._relabel(index, rollouts, shared, expert_settings, label)
+            cpu += chunk_cpu
+            self.buffer.add(relabeled)
+            metrics |= lambda_statistics(lambdas, "lambda/relabel")
+            metrics["dataset/relabeled_steps"] = float(sum(len(t) for t in relabeled))
+            metrics["weights_version/relabel"] = float(first.weights.version)
+        metrics["seconds/relabel"] = time.perf_counter() - phase
+
+        # 6. Training on expert and relabeled data.
+        phase = time.perf_counter()
+        second = self._train(f"{label} training", 0.9, cpu)
+        seconds_training += time.perf_counter() - phase
+        metrics |= {"loss/second_training": second.loss, "loss/second_training_first_batch": second.first_loss}
+        self.weights = second.weights
+        metrics["weights_version"] = float(second.weights.version)
+        metrics["dataset/steps"] = float(second.samples)
+        metrics["dataset/rollouts"] = float(len(self.buffer))
+
+        # Optional evaluation of the final policy of the iteration.
+        last = index + 1 >= settings.iterations
+        if settings.evaluation_episodes and ((index + 1) % settings.evaluate_every == 0 or last):
+            self.set_progress(0.95, f"{label} evaluation")
+            shared = relabel.share(self.weights)
+            calls = [
+                (derived_seed(trial.seed, index, "evaluation", k), self.steps, shared)
+                for k in range(settings.evaluation_episodes)
+            ]
+            evaluations = relabel.map("policy_episode", calls)
+            cpu += [e.cpu_seconds for e in evaluations]
+            metrics |= self._episode_metrics("evaluation", [e.trajectory for e in evaluations])
+
+        metrics["seconds/training"] = seconds_training
+        metrics["seconds/dagger"] = metrics["seconds/policy"] + metrics["seconds/relabel"]
+        metrics["seconds/iteration"] = time.perf_counter() - started
+        metrics["core_minutes"] = float(sum(cpu)) / 60.0
+        for key in (
+            "expert_return", "expert_success", "policy_return", "policy_success", "evaluation_return",
+            "evaluation_success",
+        ):  # fmt: skip
+            self.history.setdefault(key, [])
+            self.history[key].append(metrics.get(key, math.nan))
+        artifacts = [
+            Artifact(f"policy/policy_{index:04d}.npz", self.weights.to_bytes()),
+            Artifact("apex_curves.png", self._curves_png()),
+        ]
+        done = last
+        return RoundReport(
+            index, metrics, step=index, artifacts=artifacts, done=done, summary=self._summary() if done else {}
+        )
+
+    def _relabel(self, index: int, rollouts, shared, expert_settings: ExpertSettings, label: str):
+        chunk = self.settings.relabel_chunk
+        calls, spans = [], []
+        for episode, rollout in enumerate(rollouts):
+            trajectory = rollout.trajectory
+            states = trajectory.sim_states
+            for start in range(0, len(trajectory), chunk):
+                stop = min(start + chunk, len(trajectory))
+                tree = states_chunk(states, start, stop)
+                seed = derived_seed(self.trial.seed, index, "relabel", len(calls))
+                calls.append((tree, trajectory.observations[start:stop], shared, seed, expert_settings))
+                spans.append((episode, start, stop))
+        self.set_progress(0.5, f"{label} relabel ({len(calls)} chunks)")
+        chunks = self.roles["relabel"].map("relabel", calls)
+        relabeled = []
+        for episode, rollout in enumerate(rollouts):
+            parts = [c.actions for c, (e, _, _) in zip(chunks, spans) if e == episode]
+            trajectory = _without_states(rollout.trajectory)
+            relabeled.append(_replaced(trajectory, actions=np.concatenate(parts)))
+        lambdas = np.concatenate([c.lambdas for c in chunks]) if chunks else np.zeros(0)
+        return relabeled, lambdas, [c.cpu_seconds for c in chunks]
+
+    def _episode_metrics(self, prefix: str, trajectories: list[Trajectory]) -> dict[str, float]:
+        metrics = {f"{prefix}_return": float(np.mean([t.episode_return for t in trajectories]))}
+        if self.task.has_success:
+            metrics[f"{prefix}_success"] = float(np.mean([bool(t.success) for t in trajectories]))
+        return metrics
+
+    def _summary(self) -> dict[str, float]:
+        summary = {}
+        for key, values in self.history.items():
+            tail = np.array(values[-SUMMARY_ITERATIONS:], dtype=float)
+            tail = tail[np.isfinite(tail)]
+            if len(tail):
+                summary[f"final_{key}"] = float(tail.mean())
+        summary["final_weights_version"] = float(self.weights.version if self.weights else 0)
+        return summary
+
+    def _curves_png(self) -> bytes:
+        """Fig. 14 style: expert (dashed) and policy (solid) per iteration so far."""
+        from workers import plots
+
+        figure, axis = plots.plt.subplots(figsize=(6, 3.6))
+        metric = "success" if self.task.has_success else "return"
+        iterations = np.arange(len(self.history.get(f"expert_{metric}", [])))
+        for key, style, name in ((f"expert_{metric}", "--", "expert"), (f"policy_{metric}", "-", "policy")):
+            axis.plot(iterations, self.history.get(key, []), style, marker="o", markersize=3, label=name)
+        if any(np.isfinite(self.history.get(f"evaluation_{metric}", [math.nan]))):
+            axis.plot(
+                iterations, self.history[f"evaluation_{metric}"], ":", marker="s", markersize=3, label="evaluation"
+            )
+        published = TABLE_9.get((self.trial.task, self.settings.planner.budget or 0), {})
+        for key, style in (("expert", "--"), ("policy", "-")):
+            if key in published:
+                axis.axhline(published[key], linestyle=style, color="gray", alpha=0.5, linewidth=1)
+        axis.set_xlabel("APEX iteration")
+        axis.set_ylabel(metric)
+        axis.set_title(
+            f"{self.trial.task} budget {self.settings.planner.budget} seed {self.trial.seed} (gray: Table 9)"
+        )
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=8)
+        figure.tight_layout()
+        return plots.to_png(figure)
+
+    # ---------------------------------------------------------------- state
+    def state_dict(self) -> dict[str, Any]:
+        trainer_state = self.roles["trainer"].submit(0, "state_dict").result()
+        history = {key: np.array(values, dtype=float) for key, values in self.history.items()}
+        state: dict[str, Any] = {"buffer": self.buffer.to_tree(), "trainer": trainer_state, "history": history}
+        if self.weights is not None:
+            state["weights"] = self.weights.to_tree()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.buffer = EpisodeBuffer.from_tree(state["buffer"])
+        self.history = {key: [float(v) for v in np.atleast_1d(values)] for key, values in state["history"].items()}
+        self.weights = PolicyWeights.from_tree(state["weights"]) if "weights" in state else None
+        self.roles["trainer"].submit(0, "load_state_dict", state["trainer"]).result()
