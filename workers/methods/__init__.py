@@ -18,8 +18,9 @@ from workers.methods.base import (
     run_locally,
 )
 from workers.methods.mpc import MpcProgram, MpcSettings
+from workers.methods.napsp import NapspProgram, NapspSettings
 
-METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram,)}
+METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram, NapspProgram)}
 """Registry: method name -> program class."""
 
 DEFAULT_METHOD = "mpc"
@@ -48,6 +49,8 @@ __all__ = [
     "MethodSettings",
     "MpcProgram",
     "MpcSettings",
+    "NapspProgram",
+    "NapspSettings",
     "Program",
     "Progress",
     "RoleGroup",

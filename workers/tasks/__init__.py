@@ -1,4 +1,9 @@
-"""Ground-truth MuJoCo tasks of the thesis (chapter 3), by registry name."""
+"""The thesis's tasks, by registry name: MuJoCo ground-truth tasks (chapter 3) and goal tasks (chapter 6).
+
+Both kinds live in one registry, so sweeps name and validate them the same way
+(``Task.Options``, ``make_task(name, options)``, ``task.options``); a method
+says which kind it runs (``Program.task_problem``).
+"""
 
 from __future__ import annotations
 
@@ -8,13 +13,17 @@ from typing import Any
 from workers.tasks.adroit import Door, DoorSparse, Relocate
 from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome, TaskOptions
 from workers.tasks.fetch import FetchPickPlaceSparse
+from workers.tasks.goal_tasks import GOAL_TASKS, GoalTask
 from workers.tasks.locomotion import HalfCheetahRunning, HumanoidStandup
 from workers.tasks.point_reach import PointReach
 
-TASKS: dict[str, type[GroundTruthTask]] = {
+TASKS: dict[str, type[GroundTruthTask] | type[GoalTask]] = {
     task.name: task
     for task in (HalfCheetahRunning, HumanoidStandup, FetchPickPlaceSparse, Door, DoorSparse, Relocate, PointReach)
-}
+} | dict(GOAL_TASKS)
+
+GROUND_TRUTH_TASKS: tuple[str, ...] = tuple(name for name, task in TASKS.items() if issubclass(task, GroundTruthTask))
+"""Names of the tasks with MuJoCo ground-truth planning models (chapter 3)."""
 
 
 class UnknownTaskError(ValueError):
@@ -28,7 +37,7 @@ def unknown_task_message(name: str) -> str:
     return f"unknown task {name!r}{hint}; known tasks: {', '.join(TASKS)}"
 
 
-def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTask:
+def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTask | GoalTask:
     """The task registered under ``name``, with its options (see each task's ``Options``)."""
     try:
         task_class = TASKS[name]
@@ -38,7 +47,9 @@ def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTa
 
 
 __all__ = [
+    "GROUND_TRUTH_TASKS",
     "TASKS",
+    "GoalTask",
     "Frame",
     "GroundTruthTask",
     "RolloutBatch",

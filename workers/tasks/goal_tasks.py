@@ -4,8 +4,10 @@ Each :class:`GoalTask` builds a real gymnasium / gymnasium-robotics
 environment and says how to read it as a goal-conditioned problem: the
 observation vector s, the achieved goal ag(s) (a function of s), the desired
 goal g, the sparse success test, and the episode length (App. E.3.1: 50 steps,
-100 for Point Maze). These tasks are not part of the planning registry
-(workers/tasks/__init__.py); :data:`GOAL_TASKS` lists them.
+100 for Point Maze). :data:`GOAL_TASKS` lists them; they are also in the
+service's task registry (workers/tasks/__init__.py), so sweeps name and
+validate them like every other task (``icemlab tasks``), and the methods that
+need a ground-truth planning model refuse them.
 
 * **Point Maze** (:class:`PointMaze`): gymnasium-robotics' PointMaze on a
   four-room map of our own (:data:`FOUR_ROOMS`): starts in the lower-left
@@ -43,8 +45,9 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import mujoco
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from workers.tasks.base import TaskOptions
 from workers.tasks.maze_distance import MazeDistance
 
 
@@ -54,10 +57,8 @@ def _register_robotics_envs() -> None:
     gym.register_envs(gymnasium_robotics)
 
 
-class GoalTaskOptions(BaseModel):
+class GoalTaskOptions(TaskOptions):
     """Switches of a goal task; a sweep sets them under ``task_options``."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
 
 class GoalTask(ABC):
