@@ -129,6 +129,8 @@ class LearnerSettings(BaseModel):
     """Normalised inputs are clipped to +-clip_normalized (baselines)."""
     q_clip_low: float | None = Field(None, lt=0)
     """Lower Q-target clip; None derives it: -1/(1-gamma) for the sparse reward, -T(T+1)/2 for distances (Table 19)."""
+    distance_floor: float | None = None
+    """Distances below it are raised to it in the reward, -max(d, floor); None: -d as the network outputs it."""
     reward_scale: float = Field(1.0, gt=0)
     """Multiplies every reward (and the derived Q clip); 1 in the thesis. Distance rewards are ~-T/4 per step."""
     init_alpha: float = Field(0.1, gt=0)

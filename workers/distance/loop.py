@@ -172,7 +172,7 @@ class NeuralAPSP:
             self.trainer = DistanceTrainer(
                 self.method.distance, self.method.counts, *dims, task.episode_length, seed=seeds[0]
             )
-            reward: SparseReward | DistanceReward = DistanceReward()
+            reward: SparseReward | DistanceReward = DistanceReward(floor=self.method.learner.distance_floor)
         else:
             reward = SparseReward(task.is_success)
         learner_settings = self.method.learner

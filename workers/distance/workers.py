@@ -152,7 +152,9 @@ class LearnerWorker:
         self.env = self.task.make_env()
         _, learner_seed, reset_seed = trial_seeds(seed)
         settings = LearnerSettings(**learner)
-        reward_function = SparseReward(self.task.is_success) if reward == "sparse" else DistanceReward()
+        reward_function = (
+            SparseReward(self.task.is_success) if reward == "sparse" else DistanceReward(floor=settings.distance_floor)
+        )
         q_clip = default_q_clip(reward_function.kind, settings.gamma, self.task.episode_length)
         task = self.task
         self.learner = GoalLearner(
