@@ -85,6 +85,11 @@ def test_unset_settings_resolve_to_the_thesis_tables(task, reward):
     assert resolved.learner.algorithm == ("ddpg" if "pick_place" in task else "sac")
     assert resolved.learner.hidden == (256, 256, 256) and resolved.learner.updates_per_episode == 100
     assert resolved.goal_dim == make_task(task).goal_dim
+    horizon = make_task(task).episode_length
+    if reward == "sparse_her":
+        assert resolved.learner.reward_scale == 1.0 and resolved.learner.distance_floor is None
+    else:  # -max(d, 0) / T (README: the learned distance's reward)
+        assert resolved.learner.reward_scale == 1.0 / horizon and resolved.learner.distance_floor == 0.0
     if reward == "sparse_her":
         assert resolved.distance.hidden is None  # no distance network
     else:
