@@ -87,9 +87,9 @@ def test_unset_settings_resolve_to_the_thesis_tables(task, reward):
     assert resolved.goal_dim == make_task(task).goal_dim
     horizon = make_task(task).episode_length
     if reward == "sparse_her":
-        assert resolved.learner.reward_scale == 1.0 and resolved.learner.distance_floor is None
+        assert resolved.learner.reward_scale == 1.0 and not resolved.learner.nonnegative_distance
     else:  # -max(d, 0) / T (README: the learned distance's reward)
-        assert resolved.learner.reward_scale == 1.0 / horizon and resolved.learner.distance_floor == 0.0
+        assert resolved.learner.reward_scale == 1.0 / horizon and resolved.learner.nonnegative_distance
     if reward == "sparse_her":
         assert resolved.distance.hidden is None  # no distance network
     else:

@@ -54,8 +54,8 @@ def test_learned_rewards_are_scaled_to_the_sparse_range():
     for task in HASH_SIZES:
         ours, sparse = method_settings("ours_her", task), method_settings("sparse_her", task)
         horizon = 100 if task == "point_maze" else 50
-        assert ours.learner.reward_scale == 1 / horizon and ours.learner.distance_floor == 0.0
-        assert sparse.learner.reward_scale == 1.0 and sparse.learner.distance_floor is None
+        assert ours.learner.reward_scale == 1 / horizon and ours.learner.nonnegative_distance
+        assert sparse.learner.reward_scale == 1.0 and not sparse.learner.nonnegative_distance
         # The derived Q clip scales along: -T (T + 1) / 2 / T = -(T + 1) / 2.
         assert default_q_clip("distance", 0.98, horizon) * ours.learner.reward_scale == -(horizon + 1) / 2
 

@@ -129,10 +129,10 @@ class LearnerSettings(BaseModel):
     """Normalised inputs are clipped to +-clip_normalized (baselines)."""
     q_clip_low: float | None = Field(None, lt=0)
     """Lower Q-target clip; None derives it: -1/(1-gamma) for the sparse reward, -T(T+1)/2 for distances (Table 19)."""
-    distance_floor: float | None = None
-    """Distances below it are raised to it in the reward, -max(d, floor); None: -d as the network outputs it.
-    The thesis defaults of the learned rewards use 0: a distance counts steps, and Table 19's Q-target clip at 0
-    presumes rewards <= 0 (a negative prediction would be a positive reward the clip then hides)."""
+    nonnegative_distance: bool = False
+    """Reward -max(d, 0) instead of -d. The thesis defaults of the learned rewards switch it on: a distance counts
+    steps, and Table 19's Q-target clip at 0 presumes rewards <= 0 (a negative prediction would be a positive
+    reward the clip then hides)."""
     reward_scale: float = Field(1.0, gt=0)
     """Multiplies every reward (and the derived Q clip). The thesis defaults use 1 for the sparse reward and 1 / T
     for the learned distances (d / T in [0, ~1], like the sparse reward's scale; README)."""
@@ -231,12 +231,12 @@ def method_settings(method: Method, task_name: str, fetch: bool | None = None) -
     else:
         distance = DistanceSettings()
     # Learned distances count steps (1 to T): the reward is -max(d, 0) / T, in the sparse reward's range
-    # (README, "Reward of the learned distance"); reward_scale 1 and distance_floor None are the literal -d.
+    # (README, "Reward of the learned distance"); reward_scale 1 and nonnegative_distance false: the literal -d.
     learned = method != "sparse_her"
     learner = LearnerSettings(
         algorithm="ddpg" if task_name in DDPG_TASKS else "sac",
         her_k=HER_K[task_name][method],
-        distance_floor=0.0 if learned else None,
+        nonnegative_distance=learned,
         reward_scale=1.0 / HORIZON[task_name] if learned else 1.0,
     )
     return MethodSettings(method=method, counts=counts, distance=distance, learner=learner)

@@ -172,7 +172,9 @@ class NeuralAPSP:
             self.trainer = DistanceTrainer(
                 self.method.distance, self.method.counts, *dims, task.episode_length, seed=seeds[0]
             )
-            reward: SparseReward | DistanceReward = DistanceReward(floor=self.method.learner.distance_floor)
+            reward: SparseReward | DistanceReward = DistanceReward(
+                floor=0.0 if self.method.learner.nonnegative_distance else None
+            )
         else:
             reward = SparseReward(task.is_success)
         learner_settings = self.method.learner

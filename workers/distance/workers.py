@@ -153,7 +153,9 @@ class LearnerWorker:
         _, learner_seed, reset_seed = trial_seeds(seed)
         settings = LearnerSettings(**learner)
         reward_function = (
-            SparseReward(self.task.is_success) if reward == "sparse" else DistanceReward(floor=settings.distance_floor)
+            SparseReward(self.task.is_success)
+            if reward == "sparse"
+            else DistanceReward(floor=0.0 if settings.nonnegative_distance else None)
         )
         q_clip = default_q_clip(reward_function.kind, settings.gamma, self.task.episode_length)
         task = self.task
