@@ -482,7 +482,9 @@ def cmd_tasks(args) -> int:
     from workers.tasks import TASKS
 
     for name, task in TASKS.items():
-        print(f"{name:25s} beta {task.colored_noise_beta:<4}  {task.description}")
+        beta = getattr(task, "colored_noise_beta", None)  # goal tasks (chapter 6) have no planner beta
+        shown = f"beta {beta:<4}" if beta is not None else "goal task"
+        print(f"{name:25s} {shown:9s}  {task.description}")
         for option, field in task.Options.model_fields.items():
             doc = " ".join((field.description or "").split())
             print(f"{'':27s}task_options.{option} (default {field.default!r}): {doc}")

@@ -443,7 +443,7 @@ def test_method_settings_follow_tables_19_and_20():
     assert ours.learner.her_k == 0.25 and ours.learner.algorithm == "sac" and ours.distance.triangular
     fpp = method_settings("offpolicy_ddl_her", "fetch_pick_place")
     assert fpp.learner.algorithm == "ddpg" and not fpp.distance.triangular
-    assert (fpp.counts.single_key_dim, fpp.counts.pair_key_dim, fpp.counts.sigma) == (32, 64, 0.3)
+    assert (fpp.counts.single_key_dim, fpp.counts.pair_key_dim, fpp.counts.sigma) == (32, 64, 3.7)
     ddl = method_settings("ddl_her", "point_maze")
     assert ddl.distance.conditioning == "state" and ddl.distance.hidden == (256, 256)
     assert ddl.distance.buffer_size == 100_000

@@ -392,8 +392,21 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
 
     nothing = Interval(0.0, 0.0, 0.0)
     groups = [
-        Group("bridge_maze", "mbrl", {}, None, {"task_options.wind_max": wind}, trials, 0.0, 0.0, nothing,
-              None, None, None, None)  # fmt: skip
+        Group(
+            "bridge_maze",
+            "mbrl",
+            {},
+            None,
+            {"task_options.wind_max": wind},
+            trials,
+            0.0,
+            0.0,
+            nothing,
+            None,
+            None,
+            None,
+            None,
+        )  # fmt: skip
         for wind, trials in (
             (10, [trial(0.6, 0.8, 0.9, 0.1), trial(0.5, 0.9, 1.0, 0.2)]),
             (30, [trial(0.2, 0.7, 0.9, 0.1)]),

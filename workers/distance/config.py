@@ -129,8 +129,13 @@ class LearnerSettings(BaseModel):
     """Normalised inputs are clipped to +-clip_normalized (baselines)."""
     q_clip_low: float | None = Field(None, lt=0)
     """Lower Q-target clip; None derives it: -1/(1-gamma) for the sparse reward, -T(T+1)/2 for distances (Table 19)."""
+    nonnegative_distance: bool = False
+    """Reward -max(d, 0) instead of -d. The thesis defaults of the learned rewards switch it on: a distance counts
+    steps, and Table 19's Q-target clip at 0 presumes rewards <= 0 (a negative prediction would be a positive
+    reward the clip then hides)."""
     reward_scale: float = Field(1.0, gt=0)
-    """Multiplies every reward (and the derived Q clip); 1 in the thesis. Distance rewards are ~-T/4 per step."""
+    """Multiplies every reward (and the derived Q clip). The thesis defaults use 1 for the sparse reward and 1 / T
+    for the learned distances (d / T in [0, ~1], like the sparse reward's scale; README)."""
     init_alpha: float = Field(0.1, gt=0)
     """SAC initial entropy temperature (not in the thesis)."""
     auto_alpha: bool = True
@@ -162,14 +167,33 @@ HER_K: dict[str, dict[str, float]] = {
     "fetch_pick_place_wall": dict(ours_her=4, ddl_her=8, offpolicy_ddl_her=8, sparse_her=4),
 }
 
-# Table 20 (right): (k of N(s, a), k of N(s, a, s'), sigma). Plain Fetch Reach shares the
+# Table 20 (right) as printed: (k of N(s, a), k of N(s, a, s'), sigma). Plain Fetch Reach shares the
 # "FETCH REACH (WITH WALL)" row; FPP with wall shares FPP's.
-HASH_SIZES: dict[str, tuple[int, int, float]] = {
+TABLE_20: dict[str, tuple[int, int, float]] = {
     "point_maze": (64, 32, 20.0),
     "fetch_reach": (128, 128, 0.3),
     "fetch_reach_wall": (128, 128, 0.3),
     "fetch_pick_place": (32, 64, 0.3),
     "fetch_pick_place_wall": (32, 64, 0.3),
+}
+
+# App. E.3.1: 50 steps per episode, 100 on Point Maze; the success radii of the environments.
+HORIZON: dict[str, int] = {name: 100 if name == "point_maze" else 50 for name in TABLE_20}
+SUCCESS_RADIUS: dict[str, float] = {name: 0.45 if name == "point_maze" else 0.05 for name in TABLE_20}
+
+# The defaults: Table 20's key sizes; sigma as printed on Point Maze, where it puts the pair model's
+# collision radius (inputs 50 % likely to share their code) at 0.54, about the success radius 0.45.
+# On Fetch the printed 0.3 resolves 2 mm (1/25 of the 5 cm success radius) in gymnasium-robotics' units:
+# N(s, a, g) counts exact repeats only, the triangular loss never applies (measured: masked fraction 0),
+# which contradicts the merge rates of up to 30 % in Fig. 24b. We apply Point Maze's relation instead,
+# sigma with the pair model's collision radius at the success radius: 7.4 for k = 128, 3.7 for k = 64
+# (README, "Hash granularity"); counts.sigma: 0.3 restores the printed value.
+HASH_SIZES: dict[str, tuple[int, int, float]] = {
+    "point_maze": (64, 32, 20.0),
+    "fetch_reach": (128, 128, 7.4),
+    "fetch_reach_wall": (128, 128, 7.4),
+    "fetch_pick_place": (32, 64, 3.7),
+    "fetch_pick_place_wall": (32, 64, 3.7),
 }
 
 # Section 6.6: DDPG + HER on Fetch Pick&Place "due to better empirical performance"; SAC elsewhere.
@@ -206,8 +230,13 @@ def method_settings(method: Method, task_name: str, fetch: bool | None = None) -
         distance = DistanceSettings(triangular=False)
     else:
         distance = DistanceSettings()
+    # Learned distances count steps (1 to T): the reward is -max(d, 0) / T, in the sparse reward's range
+    # (README, "Reward of the learned distance"); reward_scale 1 and nonnegative_distance false: the literal -d.
+    learned = method != "sparse_her"
     learner = LearnerSettings(
         algorithm="ddpg" if task_name in DDPG_TASKS else "sac",
         her_k=HER_K[task_name][method],
+        nonnegative_distance=learned,
+        reward_scale=1.0 / HORIZON[task_name] if learned else 1.0,
     )
     return MethodSettings(method=method, counts=counts, distance=distance, learner=learner)

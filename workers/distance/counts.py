@@ -176,19 +176,21 @@ class CountMinSketch:
         return self.tables[np.arange(len(self.moduli))[None, :], keys].min(axis=1).astype(np.int64)
 
     def state(self) -> State:
-        """Non-zero cells only: the tables are ~6e6 counters, mostly empty."""
-        rows, cells = np.nonzero(self.tables)
-        return State(
-            {
-                "multipliers": self.multipliers.copy(),
-                "offsets": self.offsets.copy(),
-                "moduli": self.moduli.copy(),
-                "rows": rows.astype(np.int64),
-                "cells": cells.astype(np.int64),
-                "values": self.tables[rows, cells].copy(),
-            },
-            {"total": self.total},
-        )
+        """The counters, in whichever form is smaller: the non-zero cells, or the whole tables.
+
+        The tables are ~6e6 counters (24 MB). Early on most are empty and the
+        state lists the non-zero cells (a flat uint32 index and the value, 8
+        bytes each); the pair sketch of a long run fills so many cells that
+        the tables themselves are smaller. Trials checkpoint this every round.
+        """
+        arrays = {"multipliers": self.multipliers.copy(), "offsets": self.offsets.copy(), "moduli": self.moduli.copy()}
+        flat = np.flatnonzero(self.tables)
+        if 8 * len(flat) < self.tables.nbytes:
+            arrays["cells"] = flat.astype(np.uint32)  # 6 rows x ~1e6 cells < 2^32
+            arrays["values"] = self.tables.reshape(-1)[flat].copy()
+        else:
+            arrays["tables"] = self.tables.copy()
+        return State(arrays, {"total": self.total})
 
     def load(self, state: State) -> None:
         """Restore a sketch exported by :meth:`state` (same moduli)."""
@@ -196,8 +198,11 @@ class CountMinSketch:
             raise ValueError("sketch state was made with other moduli")
         self.multipliers = np.array(state.arrays["multipliers"], dtype=np.int64)
         self.offsets = np.array(state.arrays["offsets"], dtype=np.int64)
-        self.tables[:] = 0
-        self.tables[state.arrays["rows"], state.arrays["cells"]] = state.arrays["values"]
+        if "tables" in state.arrays:
+            self.tables[:] = state.arrays["tables"]
+        else:
+            self.tables[:] = 0
+            self.tables.reshape(-1)[np.asarray(state.arrays["cells"], dtype=np.int64)] = state.arrays["values"]
         self.total = int(state.meta["total"])
 
 

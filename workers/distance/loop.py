@@ -97,7 +97,9 @@ def collect_episodes(
 
     Returns the episodes and success statistics: success at the last step
     (the thesis's success rate), at any step, the env's own success flag at
-    the last step (Pick&Place: the box alone), and the final goal distance.
+    the last step (Pick&Place: the box alone), the final goal distance, and
+    the maximum reward: the episode's largest -||ag(s_t) - g|| (t >= 1), the
+    quantity Fig. 22 and 24 plot against the threshold -0.05.
     """
     horizon = task.episode_length
     observations = np.zeros((count, horizon + 1, task.obs_dim))
@@ -124,6 +126,7 @@ def collect_episodes(
         "success_any": float(successes.max(axis=1).mean()),
         "env_success": float(np.nanmean(env_success)) if not np.isnan(env_success).all() else float("nan"),
         "final_goal_distance": float(task.goal_distance(achieved[:, -1], goals).mean()),
+        "max_reward": float((-task.goal_distance(achieved[:, 1:], goals[:, None])).max(axis=1).mean()),
     }
     stats |= task.evaluation_metrics(achieved[:, -1], goals)
     return episodes, stats
@@ -169,7 +172,9 @@ class NeuralAPSP:
             self.trainer = DistanceTrainer(
                 self.method.distance, self.method.counts, *dims, task.episode_length, seed=seeds[0]
             )
-            reward: SparseReward | DistanceReward = DistanceReward()
+            reward: SparseReward | DistanceReward = DistanceReward(
+                floor=0.0 if self.method.learner.nonnegative_distance else None
+            )
         else:
             reward = SparseReward(task.is_success)
         learner_settings = self.method.learner

@@ -47,8 +47,10 @@ class DistanceReward:
 
     kind = "distance"
 
-    def __init__(self, function: DistanceFunction | None = None):
+    def __init__(self, function: DistanceFunction | None = None, floor: float | None = None):
         self.function = function
+        self.floor = floor
+        """Distances below it are raised to it before the sign flip (None: the network's output as it is)."""
 
     def load_weights(self, weights: State) -> None:
         """Install the distance trainer's latest weights."""
@@ -61,5 +63,9 @@ class DistanceReward:
         if self.function is None:
             raise RuntimeError("DistanceReward has no weights yet: call load_weights with the trainer's reward_weights")
         if self.function.uses_action:
-            return -self.function(batch.observations, batch.actions, batch.goals)
-        return -self.function(batch.next_observations, None, batch.goals)
+            distances = self.function(batch.observations, batch.actions, batch.goals)
+        else:
+            distances = self.function(batch.next_observations, None, batch.goals)
+        if self.floor is not None:
+            distances = np.maximum(distances, self.floor)
+        return -distances

@@ -90,14 +90,18 @@ class DistanceTrainer:
         self.model.copy_target()
         metrics: dict[str, float] = {}
         if temporal:
-            metrics["distance/temporal_loss"] = float(np.mean([m["loss"] for m in temporal]))
-            metrics["distance/temporal_target_mean"] = float(np.mean([m["target_mean"] for m in temporal]))
-            metrics["distance/bootstrapped_fraction"] = float(np.mean([m["bootstrapped"] for m in temporal]))
+            for key in temporal[0]:
+                name = {"loss": "temporal_loss", "target_mean": "temporal_target_mean"}.get(key, key)
+                metrics[f"distance/{name}"] = float(np.mean([m[key] for m in temporal]))
         if settings.triangular:
             triangular = [self.triangular_step() for _ in range(episodes * settings.triangular_updates_per_episode)]
             if triangular:
-                for key in ("loss", "merge_rate", "relax_rate", "masked_fraction"):
+                for key in triangular[0]:
                     metrics[f"distance/triangular_{key}"] = float(np.mean([m[key] for m in triangular]))
+        if self.counts is not None:
+            metrics["counts/single_increments"] = float(self.counts.single.sketch.total)
+            metrics["counts/pair_increments"] = float(self.counts.pair.sketch.total)
+        metrics["distance/buffer_episodes"] = float(self.buffer.size)
         return metrics
 
     def temporal_step(self) -> dict[str, float]:
@@ -110,18 +114,24 @@ class DistanceTrainer:
             # DDL's d(s, g) scores the state; the pair (s_i, s_j) is j - i steps apart.
             actions = batch.actions if self.uses_action else None
             loss, _ = self.model.fit(batch.observations, actions, batch.goals, targets)
-            return {"loss": loss, "target_mean": float(targets.mean()), "bootstrapped": 0.0}
+            return {"loss": loss, "target_mean": float(targets.mean())}
         assert self.counts is not None
         estimates = self.model.predict_target(batch.observations, batch.actions, batch.goals)
+        counts = self.counts.single.query(batch.observations, batch.actions)
         uncertainty = count_uncertainty(
-            self.counts.single.query(batch.observations, batch.actions),
+            counts,
             self.settings.uncertainty_scale,
             self.settings.uncertainty_exponent,
         )
         targets = temporal_targets(batch.steps, estimates, uncertainty)
         loss, _ = self.model.fit(batch.observations, batch.actions, batch.goals, targets)
-        bootstrapped = float(np.mean(targets < batch.steps))
-        return {"loss": loss, "target_mean": float(targets.mean()), "bootstrapped": bootstrapped}
+        return {
+            "loss": loss,
+            "target_mean": float(targets.mean()),
+            "bootstrapped_fraction": float(np.mean(targets < batch.steps)),
+            "count_mean": float(np.mean(counts)),
+            "uncertainty_mean": float(np.mean(uncertainty)),
+        }
 
     def triangular_step(self) -> dict[str, float]:
         """One update of the triangular loss (eq. 31b, Alg. 4 lines 11-20)."""
@@ -130,15 +140,19 @@ class DistanceTrainer:
         pair = self.counts.pair
         first_leg = self.model.predict_target(batch.observations, batch.actions, batch.via_goals)
         second_leg = self.model.predict_target(batch.via_observations, batch.via_actions, batch.goals)
-        targets, mask = triangular_targets(
-            first_leg,
-            second_leg,
-            pair.query(batch.observations, batch.actions, batch.goals),
-            pair.query(batch.via_observations, batch.via_actions, batch.goals),
-        )
+        to_goal = pair.query(batch.observations, batch.actions, batch.goals)
+        via_to_goal = pair.query(batch.via_observations, batch.via_actions, batch.goals)
+        targets, mask = triangular_targets(first_leg, second_leg, to_goal, via_to_goal)
         loss, predictions = self.model.fit(batch.observations, batch.actions, batch.goals, targets, mask)
         merge, relax = merge_and_relax_rates(predictions, targets, mask)
-        return {"loss": loss, "merge_rate": merge, "relax_rate": relax, "masked_fraction": float(mask.mean())}
+        return {
+            "loss": loss,
+            "merge_rate": merge,
+            "relax_rate": relax,
+            "masked_fraction": float(mask.mean()),
+            "unreached_fraction": float(np.mean(to_goal == 0)),
+            "via_reached_fraction": float(np.mean(via_to_goal > 0)),
+        }
 
     # ------------------------------------------------------------ exchange
     def reward_weights(self) -> State:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import os
 
+from workers.methods.apex import ApexProgram, ApexSettings
 from workers.methods.base import (
     Artifact,
     LocalRoleGroup,
@@ -17,11 +18,13 @@ from workers.methods.base import (
     TrialSpec,
     run_locally,
 )
-from workers.methods.apex import ApexProgram, ApexSettings
 from workers.methods.mbrl import MbrlProgram, MbrlSettings
 from workers.methods.mpc import MpcProgram, MpcSettings
+from workers.methods.napsp import NapspProgram, NapspSettings
 
-METHODS: dict[str, type[Program]] = {program.name: program for program in (MpcProgram, ApexProgram, MbrlProgram)}
+METHODS: dict[str, type[Program]] = {
+    program.name: program for program in (MpcProgram, ApexProgram, MbrlProgram, NapspProgram)
+}
 """Registry: method name -> program class."""
 
 DEFAULT_METHOD = "mpc"
@@ -54,6 +57,8 @@ __all__ = [
     "MethodSettings",
     "MpcProgram",
     "MpcSettings",
+    "NapspProgram",
+    "NapspSettings",
     "Program",
     "Progress",
     "RoleGroup",

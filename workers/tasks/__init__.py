@@ -1,6 +1,7 @@
-"""The thesis's tasks, by registry name: MuJoCo ground-truth tasks (chapter 3) and learned-model tasks (chapter 5).
+"""The thesis's tasks, by registry name: MuJoCo ground-truth tasks (chapter 3), learned-model tasks
+(chapter 5) and goal tasks (chapter 6).
 
-Both kinds live in one registry, so sweeps name and validate them the same way
+All kinds live in one registry, so sweeps name and validate them the same way
 (``Task.Options``, ``make_task(name, options)``, ``task.options``); a method
 says which kind it runs (``Program.task_problem``).
 """
@@ -14,12 +15,13 @@ from workers.tasks.adroit import Door, DoorSparse, Relocate
 from workers.tasks.base import Frame, GroundTruthTask, RolloutBatch, SimState, StepOutcome, TaskOptions
 from workers.tasks.bridge_maze import BridgeMaze
 from workers.tasks.fetch import FetchPickPlaceSparse
+from workers.tasks.goal_tasks import GOAL_TASKS, GoalTask
 from workers.tasks.locomotion import HalfCheetahRunning, HumanoidStandup
 from workers.tasks.model_based import ModelBasedTask
 from workers.tasks.noisy import NoisyHalfCheetah
 from workers.tasks.point_reach import PointReach
 
-TASKS: dict[str, type[GroundTruthTask] | type[ModelBasedTask]] = {
+TASKS: dict[str, type[GroundTruthTask] | type[ModelBasedTask] | type[GoalTask]] = {
     task.name: task
     for task in (
         HalfCheetahRunning,
@@ -32,7 +34,7 @@ TASKS: dict[str, type[GroundTruthTask] | type[ModelBasedTask]] = {
         BridgeMaze,
         NoisyHalfCheetah,
     )
-}
+} | dict(GOAL_TASKS)
 
 GROUND_TRUTH_TASKS: tuple[str, ...] = tuple(name for name, task in TASKS.items() if issubclass(task, GroundTruthTask))
 """Names of the tasks with MuJoCo ground-truth planning models (chapter 3)."""
@@ -49,7 +51,7 @@ def unknown_task_message(name: str) -> str:
     return f"unknown task {name!r}{hint}; known tasks: {', '.join(TASKS)}"
 
 
-def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTask | ModelBasedTask:
+def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTask | ModelBasedTask | GoalTask:
     """The task registered under ``name``, with its options (see each task's ``Options``)."""
     try:
         task_class = TASKS[name]
@@ -61,6 +63,7 @@ def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTa
 __all__ = [
     "GROUND_TRUTH_TASKS",
     "TASKS",
+    "GoalTask",
     "ModelBasedTask",
     "Frame",
     "GroundTruthTask",

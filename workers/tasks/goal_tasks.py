@@ -4,14 +4,18 @@ Each :class:`GoalTask` builds a real gymnasium / gymnasium-robotics
 environment and says how to read it as a goal-conditioned problem: the
 observation vector s, the achieved goal ag(s) (a function of s), the desired
 goal g, the sparse success test, and the episode length (App. E.3.1: 50 steps,
-100 for Point Maze). These tasks are not part of the planning registry
-(workers/tasks/__init__.py); :data:`GOAL_TASKS` lists them.
+100 for Point Maze). :data:`GOAL_TASKS` lists them; they are also in the
+service's task registry (workers/tasks/__init__.py), so sweeps name and
+validate them like every other task (``icemlab tasks``), and the methods that
+need a ground-truth planning model refuse them.
 
 * **Point Maze** (:class:`PointMaze`): gymnasium-robotics' PointMaze on a
   four-room map of our own (:data:`FOUR_ROOMS`): starts in the lower-left
-  room, goals in the upper-right room, as in Fig. 20 and Fig. 27; the
-  straight line between the rooms runs into the central walls, so the
-  Euclidean distance has local optima. The env's frame skip is 1 and its speed
+  room, goals in the upper-right room, as in Fig. 20 and Fig. 27; the doors
+  sit away from the diagonal, so a ball pushed straight at the goal sticks in
+  a corner of the start room (the Euclidean distance has a local optimum; a
+  greedy controller reached the goal room in 3 of 20 episodes, against 17 of
+  20 on :data:`OPEN_FOUR_ROOMS`, the first map). The env's frame skip is 1 and its speed
   is clipped at 5 (MEASURED.md), so one env step moves the ball at most 0.05;
   an action repeat (default 3) makes the far room reachable in 100 steps.
 * **Fetch Reach** (:class:`FetchReach`) and **Fetch Reach with a wall**
@@ -38,13 +42,14 @@ import os
 import tempfile
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
 import mujoco
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from workers.tasks.base import TaskOptions
 from workers.tasks.maze_distance import MazeDistance
 
 
@@ -54,10 +59,8 @@ def _register_robotics_envs() -> None:
     gym.register_envs(gymnasium_robotics)
 
 
-class GoalTaskOptions(BaseModel):
+class GoalTaskOptions(TaskOptions):
     """Switches of a goal task; a sweep sets them under ``task_options``."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
 
 class GoalTask(ABC):
@@ -121,6 +124,27 @@ class GoalTask(ABC):
 R, G = "r", "g"
 FOUR_ROOMS: list[list[Any]] = [
     [1, 1, 1, 1, 1, 1, 1],
+    [1, 0, 0, 0, G, G, 1],
+    [1, 0, 0, 1, G, G, 1],
+    [1, 0, 1, 1, 1, 0, 1],
+    [1, R, R, 1, 0, 0, 1],
+    [1, R, R, 0, 0, 0, 1],
+    [1, 1, 1, 1, 1, 1, 1],
+]
+"""Four 2 x 2 rooms joined by one-cell doors away from the diagonal; starts ("r") lower left, goals ("g") upper right.
+
+Fig. 20 and 27 show no map; section 6.6 asks for walls that give the
+Euclidean distance to the goal local optima. The doors sit on the rooms'
+outer sides (left and top of the path through the upper-left room, bottom and
+right of the path through the lower-right room), so a ball pushed straight at
+the goal from the start room ends in the corner where the start room touches
+the central wall block, 3 units from the goal room in a straight line and 6
+along the shortest path. In world units (scale 1) the rooms' centres are 3
+apart; either shortest path from the start room to the goal room is about 6.
+"""
+
+OPEN_FOUR_ROOMS: list[list[Any]] = [
+    [1, 1, 1, 1, 1, 1, 1],
     [1, 0, 0, 1, G, G, 1],
     [1, 0, 0, 0, G, G, 1],
     [1, 1, 0, 1, 1, 0, 1],
@@ -128,12 +152,11 @@ FOUR_ROOMS: list[list[Any]] = [
     [1, R, R, 0, 0, 0, 1],
     [1, 1, 1, 1, 1, 1, 1],
 ]
-"""Four 2 x 2 rooms joined by one-cell doors; starts ("r") lower left, goals ("g") upper right (Fig. 20, 27).
+"""The first map of this module: the doors next to the central wall block let a ball pushed straight at the goal
+slide along the walls into the goal room (a greedy controller got there from the start room in 8 of 8 episodes),
+so the Euclidean distance has no local optimum worth the name; kept as ``maze: open_four_rooms``."""
 
-In world units (scale 1) the rooms' centres are 3 apart; the shortest path
-from the start room to the goal room passes one of the two side rooms and is
-about 5-7 long, while the straight line runs into the central wall block.
-"""
+MAZES: dict[str, list[list[Any]]] = {"four_rooms": FOUR_ROOMS, "open_four_rooms": OPEN_FOUR_ROOMS}
 
 
 class ActionRepeat(gym.Wrapper):
@@ -154,6 +177,9 @@ class ActionRepeat(gym.Wrapper):
 
 
 class PointMazeOptions(GoalTaskOptions):
+    maze: Literal["four_rooms", "open_four_rooms"] = "four_rooms"
+    """The map: four_rooms (doors away from the diagonal: a ball pushed straight at the goal gets stuck) or
+    open_four_rooms (doors next to the central block: it slides into the goal room)."""
     action_repeat: int = Field(3, ge=1)
     """Env steps per agent step; PointMaze's ball covers at most 0.05 per env step (speed clip 5, frame skip 1)."""
     resolution: float = Field(0.05, gt=0)
@@ -170,12 +196,12 @@ class PointMaze(GoalTask):
     episode_length = 100
     obs_dim, goal_dim, action_dim = 4, 2, 2
     distance_threshold = 0.45
-    maze_map = FOUR_ROOMS
     ball_radius = 0.1
     """Radius of PointMaze's ball geom (the clearance of the ground-truth distance)."""
 
     def __init__(self, **options: Any):
         super().__init__(**options)
+        self.maze_map = MAZES[self.options.maze]
         self.maze_distance = MazeDistance(self.maze_map, 1.0, self.options.resolution, self.ball_radius)
 
     def make_env(self) -> gym.Env:
