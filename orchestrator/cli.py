@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser(
         "bench",
-        help="planner speed vs raw MuJoCo, service vs in-process",
+        help="planner speed vs raw MuJoCo, service vs in-process, the learning methods' throughput",
         description="Measure, in one run: raw single-thread mj_step throughput per task; iCEM planning "
         "throughput at each budget (horizon 30) and its ratio to raw x threads; seconds per environment "
         "step next to the thesis's Table 2; and the service's overhead against in-process planning. "
@@ -144,6 +144,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--steps", type=int, default=None, help="MPC steps measured per task and budget (default 10)")
     bench.add_argument("--threads", type=int, default=None, help="rollout threads (default: all CPUs)")
     bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (no Ray)")
+    bench.add_argument(
+        "--methods",
+        nargs="*",
+        choices=("apex", "mbrl", "napsp"),
+        default=None,
+        help="learning methods to measure: apex (relabeling with 1 vs 2 workers, core-minutes per iteration), "
+        "mbrl (ensemble evaluator vs dense matmuls), napsp (learner vs a bare torch loop); default: all with "
+        "--full, none otherwise; --methods alone: all",
+    )
     bench.add_argument("--json", action="store_true", help="print the figures as one JSON document")
 
     policy = commands.add_parser(
@@ -434,11 +443,13 @@ def cmd_ui(args) -> int:
 
 def cmd_bench(args) -> int:
     from orchestrator.bench import FULL, QUICK, print_report, run_benchmark
+    from orchestrator.bench_methods import METHODS, method_figures, print_method_report
 
     plan = dict(FULL if args.full else QUICK)
     for key in ("tasks", "budgets", "steps"):
         if getattr(args, key) is not None:
             plan[key] = getattr(args, key)
+    methods = [] if args.methods is None and not args.full else list(args.methods or METHODS)
     results = run_benchmark(
         plan["tasks"],
         plan["budgets"],
@@ -447,10 +458,13 @@ def cmd_bench(args) -> int:
         service=not args.no_service,
         service_steps=plan["service_steps"],
     )
+    if methods:
+        results["methods"] = method_figures(methods, quick=not args.full)
     if args.json:
         print(json.dumps(results, indent=2))
     else:
         print_report(results)
+        print_method_report(results.get("methods", {}))
     return 0
 
 

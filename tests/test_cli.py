@@ -266,3 +266,21 @@ def test_seed_ranges_expand_to_consecutive_seeds(tmp_path):
     sweep = tmp_path / "range.yaml"
     sweep.write_text("name: x\ntask: point_reach\nseeds: {first: 3, count: 4}\n")
     assert [t.config.seed for t in load_sweep(sweep).trials] == [3, 4, 5, 6]
+
+
+@pytest.mark.slow
+def test_bench_methods_json_reports_each_methods_ratios(capsys):
+    """``icemlab bench --methods --json``: each learning method's same-run figures are present and consistent."""
+    assert main(["bench", "--tasks", "point_reach", "--budgets", "20", "--steps", "2", "--no-service"]
+                + ["--methods", "--json"]) == 0  # fmt: skip
+    methods = json.loads(capsys.readouterr().out)["methods"]
+    relabel = methods["apex"]["relabel"]
+    assert relabel["workers"] == [1, 2] and relabel["ratio_to_first"][0] == 1.0
+    assert all(rate > 0 for rate in relabel["states_per_second"])
+    apex = methods["apex"]
+    assert apex["fraction_of_table_12"] == pytest.approx(apex["iteration_core_minutes"] / (5.6 * 32))
+    assert set(methods["mbrl"]["presets"]) == {"bridge_maze", "noisy_halfcheetah", "small"}
+    for preset in methods["mbrl"]["presets"].values():
+        assert preset["ratio"] == pytest.approx(preset["ensemble_flops_per_second"] / preset["dense_flops_per_second"])
+    for task in methods["napsp"]["tasks"].values():
+        assert task["ratio"] == pytest.approx(task["learner_updates_per_second"] / task["bare_updates_per_second"])

@@ -1,11 +1,15 @@
 """Sustained faults (marker: slow): a random worker-side actor SIGKILLed every 15 s through a sweep.
 
-Four HalfCheetah trials (budget 50, two episodes of 300 steps, one remote
-simulation worker each, default retry settings) run once undisturbed and once
+Four HalfCheetah trials (budget 50, two episodes of 300 steps, two remote
+simulation workers each, default retry settings) run once undisturbed and once
 while a killer thread SIGKILLs a random actor of the running trials (the
 ProgramRunner or a SimulationWorker) every 15 s. Every trial must finish
 exactly once with results identical to the undisturbed run, in at most twice
 its wall time. About ten minutes on two cores.
+
+The learning methods get the same treatment with their smoke sweeps and their
+stateful or relabeling roles as the targets: APEX's RelabelWorker and policy
+trainer, the MBRL EnsembleTrainer, neural APSP's DistanceTrainer.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import random
 import signal
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import ray
@@ -41,11 +46,14 @@ def halfcheetah_sweep(directory):
 
 
 class Killer(threading.Thread):
-    """SIGKILLs a random actor of the scheduler's running trials every ``period`` seconds."""
+    """SIGKILLs a random actor of the scheduler's running trials every ``period`` seconds.
 
-    def __init__(self, scheduler: SweepScheduler, period: float, seed: int = 0):
+    ``roles`` limits the targets to those roles ("runner" is the trial's ProgramRunner); None targets all.
+    """
+
+    def __init__(self, scheduler: SweepScheduler, period: float, roles: tuple[str, ...] | None = None, seed: int = 0):
         super().__init__(daemon=True)
-        self.scheduler, self.period = scheduler, period
+        self.scheduler, self.period, self.roles = scheduler, period, roles
         self.random = random.Random(seed)
         self.stopped = threading.Event()
         self.kills: list[tuple[float, str]] = []
@@ -54,7 +62,12 @@ class Killer(threading.Thread):
         started = time.monotonic()
         while not self.stopped.wait(self.period):
             running = [a for a in list(self.scheduler._active) if a.phase == "running"]
-            actors = [(name, actor) for a in running for name, actor in self._actors(a)]
+            actors = [
+                (name, actor)
+                for a in running
+                for name, actor in self._actors(a)
+                if self.roles is None or name in self.roles
+            ]
             if not actors:
                 continue
             name, actor = self.random.choice(actors)
@@ -73,11 +86,12 @@ class Killer(threading.Thread):
                 yield role, worker
 
 
-def run_sweep(directory, killer_period: float | None):
-    sweep = halfcheetah_sweep(directory)
+def run_sweep(directory, sweep, killer_period: float | None, roles: tuple[str, ...] | None = None):
+    """Run ``sweep`` with a fresh store in ``directory``, with a killer if a period is given."""
+    loaded = load_sweep(sweep)
     tracker = Tracker(default_tracking_uri(directory))
-    scheduler = SweepScheduler(load_sweep(sweep), tracker)
-    killer = Killer(scheduler, killer_period) if killer_period else None
+    scheduler = SweepScheduler(loaded, tracker)
+    killer = Killer(scheduler, killer_period, roles) if killer_period else None
     started = time.monotonic()
     if killer:
         killer.start()
@@ -87,25 +101,42 @@ def run_sweep(directory, killer_period: float | None):
         if killer:
             killer.stopped.set()
     seconds = time.monotonic() - started
-    _, children = sweep_runs(tracker.uri, "sustained")
+    _, children = sweep_runs(tracker.uri, loaded.sweep.name)
     return outcome, children, seconds, killer, tracker
 
 
-def test_sustained_kills_cost_at_most_the_round_in_flight(tmp_path):
+def calm_and_stormy(tmp_path, sweep, roles=None):
+    """The sweep undisturbed, then under kills; both stores fresh, one local Ray for both."""
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         calm_dir, stormy_dir = tmp_path / "calm", tmp_path / "stormy"
         calm_dir.mkdir()
         stormy_dir.mkdir()
-        calm, calm_children, calm_seconds, _, _ = run_sweep(calm_dir, None)
-        stormy, children, seconds, killer, tracker = run_sweep(stormy_dir, KILL_EVERY_SECONDS)
+        calm = run_sweep(calm_dir, sweep, None)
+        stormy = run_sweep(stormy_dir, sweep, KILL_EVERY_SECONDS, roles)
     finally:
         ray.shutdown()
+    (_, _, calm_seconds, _, _), (_, _, seconds, killer, _) = calm, stormy
     kinds = [name for _, name in killer.kills]
     print(
-        f"\nfault-free {calm_seconds:.0f} s; with kills {seconds:.0f} s (x{seconds / calm_seconds:.2f}); "
-        f"{len(kinds)} kills: {kinds.count('runner')} runners, {kinds.count('simulation')} simulation workers"
+        f"\n{sweep.name}: fault-free {calm_seconds:.0f} s; with kills {seconds:.0f} s (x{seconds / calm_seconds:.2f}); "
+        f"{len(kinds)} kills: " + ", ".join(f"{kinds.count(k)} {k}" for k in sorted(set(kinds)))
     )
+    return calm, stormy
+
+
+def assert_no_step_logged_twice(tracker: Tracker, child) -> None:
+    for key in child.metrics:
+        steps = [s for s, _ in tracker.metric_history(child.run_id, key)]
+        assert len(steps) == len(set(steps)), f"{key}: a step logged twice"
+
+
+def test_sustained_kills_cost_at_most_the_round_in_flight(tmp_path):
+    sweep = halfcheetah_sweep(tmp_path)
+    (calm, calm_children, calm_seconds, _, _), (stormy, children, seconds, killer, tracker) = calm_and_stormy(
+        tmp_path, sweep
+    )
+    kinds = [name for _, name in killer.kills]
     assert (calm.finished, calm.failed) == (4, 0)
     assert (stormy.finished, stormy.failed) == (4, 0)
     assert len(children) == 4 and all(c.status == FINISHED for c in children)  # each trial finished exactly once
@@ -116,6 +147,32 @@ def test_sustained_kills_cost_at_most_the_round_in_flight(tmp_path):
         steps = [s for s, _ in tracker.metric_history(child.run_id, "step/reward")]
         assert sorted(steps) == list(range(600))  # no metric step lost or logged twice
         assert child.metrics.get("failures/code_error") is None  # kills never spend the code-error retries
+    assert seconds <= 2.0 * calm_seconds
+
+
+SMOKE = Path(__file__).resolve().parents[1] / "sweeps" / "smoke"
+
+
+@pytest.mark.parametrize(
+    ("method", "roles"),
+    [("apex", ("relabel", "trainer")), ("mbrl", ("trainer",)), ("napsp", ("distance",))],
+)
+def test_a_learning_method_survives_sustained_kills_of_its_workers(tmp_path, method, roles):
+    """The method's smoke sweep, its relabeling or training actors SIGKILLed every 15 s."""
+    sweep = SMOKE / f"{method}.yaml"
+    metric = load_sweep(sweep).sweep.program.metrics
+    (calm, calm_children, calm_seconds, _, _), (stormy, children, seconds, killer, tracker) = calm_and_stormy(
+        tmp_path, sweep, roles
+    )
+    assert killer.kills, "no actor of the targeted roles was ever running"
+    assert (calm.finished, calm.failed) == (stormy.finished, stormy.failed) == (len(calm_children), 0)
+    assert len(children) == len(calm_children) and all(c.status == FINISHED for c in children)
+    summary = sorted(set(metric.values()))
+    expected = {c.trial_key: [c.metrics.get(k) for k in summary] for c in calm_children}
+    assert {c.trial_key: [c.metrics.get(k) for k in summary] for c in children} == expected  # identical results
+    for child in children:
+        assert_no_step_logged_twice(tracker, child)
+        assert child.metrics.get("failures/code_error") is None
     assert seconds <= 2.0 * calm_seconds
 
 

@@ -22,7 +22,7 @@ from workers.dynamics.propagation import Propagation, petsus_propagate
 
 DEFAULT_PARTICLES = 5
 """Particles per sequence. The thesis does not give P; PETS used 20. One per member of a 5-ensemble keeps
-the 6 x 400 BridgeMaze model affordable on a two-core machine (MEASURED.md section 8); raise it when it fits."""
+the 6 x 400 BridgeMaze model affordable on a two-core machine; raise it when it fits."""
 
 
 class EnsembleEvaluator:

@@ -100,7 +100,7 @@ ModelSettings = create_model(
 # init_std 0.5, fraction_elites_reused 0.3, keep_previous_elites, shift_elites_over_time,
 # execute_best_elite, use_mean_actions (add the mean), colored noise with the task's beta (2.0).
 # reevaluate_elites is not in the table: the evaluator is stochastic, so kept elites are evaluated
-# again rather than keeping a lucky draw (issue "Methods as programs", item 7).
+# again rather than keeping a lucky draw (PlannerConfig.reevaluate_elites).
 TABLE_15: dict[str, Any] = dict(
     algorithm="icem",
     budget=None,

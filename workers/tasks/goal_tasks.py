@@ -16,7 +16,7 @@ need a ground-truth planning model refuse them.
   a corner of the start room (the Euclidean distance has a local optimum; a
   greedy controller reached the goal room in 3 of 20 episodes, against 17 of
   20 on :data:`OPEN_FOUR_ROOMS`, the first map). The env's frame skip is 1 and its speed
-  is clipped at 5 (MEASURED.md), so one env step moves the ball at most 0.05;
+  is clipped at 5 (in gymnasium-robotics), so one env step moves the ball at most 0.05;
   an action repeat (default 3) makes the far room reachable in 100 steps.
 * **Fetch Reach** (:class:`FetchReach`) and **Fetch Reach with a wall**
   (:class:`FetchReachWall`): a wall across the middle of the table, the
