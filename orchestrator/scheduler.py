@@ -80,6 +80,7 @@ class TrialState:
     retries_left: int = 0
     lost_left: int = 0
     lost: int = 0
+    """Lost processes since the trial last completed a round: the step of the backoff."""
     last_signature: str | None = None
     bad_checkpoints: set[int] = field(default_factory=set)
     logged_rounds: set[int] = field(default_factory=set)
@@ -445,6 +446,7 @@ class SweepScheduler:
             state.logged_rounds.add(round_report.index)
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
+        state.lost = 0  # progress since the last loss: the next one is not a crash loop, back off from the start
         if not round_report.done:
             return False
         self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
