@@ -171,7 +171,7 @@ def service_figures(steps: int, threads: int) -> dict[str, Any]:
         try:
             ray.get(group.ready())
             runner = group.start()
-            report, _ = ray.get(runner.run_round.remote(0))
+            report, _, _ = ray.get(runner.run_round.remote(0))
             return _seconds_per_step(report), ray.get(runner.peak_memory_mb.remote())
         finally:
             group.teardown()

@@ -53,6 +53,7 @@ def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
 
     from workers.actors import CheckpointMismatchError
     from workers.checkpoint import CheckpointError
+    from workers.methods import RoleWorkerLost
 
     inner = error
     # A runner that got a dead worker's error re-raises it wrapped: look through the wrapping.
@@ -61,6 +62,11 @@ def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
     cause_of_task = inner.cause if isinstance(inner, rex.RayTaskError) else inner
     if isinstance(cause_of_task, CheckpointError | CheckpointMismatchError):
         return Failure(BAD_CHECKPOINT, _first_line(cause_of_task), _detail(error), _signature(error))
+    if isinstance(cause_of_task, RoleWorkerLost):  # a role worker lost beyond what the runner could recover
+        text = str(cause_of_task)
+        memory = bool(_MEMORY_WORDS.search(text))
+        cause = _lost_cause(cause_of_task, text, memory, memory_mb)
+        return Failure(LOST_PROCESS, cause, _detail(error), _signature(cause_of_task), memory)
     lost_types = (
         rex.ActorDiedError,
         rex.ActorUnavailableError,

@@ -9,8 +9,11 @@ are counted across concurrent trials by Ray itself.
 Role workers reach the program as :class:`RayRoleGroup` objects: the plain
 RoleGroup interface of workers/, implemented with actor calls and the object
 store. Stateless workers (pure functions of their arguments) are restarted by
-Ray and their calls retried; a stateful worker is not restarted: its loss
-ends the round, and the trial resumes from its last checkpoint.
+Ray and their calls retried. A stateful worker is restarted too, but a call
+it had in flight fails with RoleWorkerLost: its state went with the process,
+so the runner restores the program from its last completed round and runs the
+round again (workers/actors.py). Losing the runner itself ends the attempt;
+the trial resumes from its last checkpoint in a new group.
 """
 
 from __future__ import annotations
@@ -24,17 +27,27 @@ from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
 from workers import code_fingerprint
 from workers.actors import ProgramRunner
-from workers.methods import METHODS, RoleSpec, TrialSpec
+from workers.methods import METHODS, RoleSpec, RoleWorkerLost, TrialSpec
+
+LOST_ACTOR_ERRORS = (ray.exceptions.RayActorError, ray.exceptions.ActorUnavailableError)
+"""What a call on an actor whose process died raises (it may be restarting, or gone)."""
+
+
+def _get(role: str, ref: ray.ObjectRef) -> Any:
+    try:
+        return ray.get(ref)
+    except LOST_ACTOR_ERRORS as error:  # the whole text: it says why (a memory kill, a node lost)
+        raise RoleWorkerLost(role, f"{type(error).__name__}: {error}") from error
 
 
 class RayPending:
     """A call under way on an actor."""
 
-    def __init__(self, ref: ray.ObjectRef):
-        self.ref = ref
+    def __init__(self, role: str, ref: ray.ObjectRef):
+        self.role, self.ref = role, ref
 
     def result(self) -> Any:
-        return ray.get(self.ref)
+        return _get(self.role, self.ref)
 
 
 class RayRoleGroup:
@@ -46,7 +59,7 @@ class RayRoleGroup:
         self.size = len(self.actors)
 
     def submit(self, member: int, method: str, *args: Any) -> RayPending:
-        return RayPending(getattr(self.actors[member], method).remote(*args))
+        return RayPending(self.name, getattr(self.actors[member], method).remote(*args))
 
     def map(self, method: str, arguments: Sequence[tuple]) -> list[Any]:
         """Each worker takes the next call as soon as it is free; results come back in order."""
@@ -65,7 +78,7 @@ class RayRoleGroup:
         while in_flight:
             (ref,), _ = ray.wait(list(in_flight), num_returns=1)
             index, member = in_flight.pop(ref)
-            results[index] = ray.get(ref)
+            results[index] = _get(self.name, ref)
             if queue:
                 start(member)
         return results
@@ -82,7 +95,7 @@ class TrialGroup:
         spec: the trial.
         unit_cpus: CPUs of one unit of work (see Program.roles_for).
         counts: worker counts per role from the sweep's resources.
-        max_restarts: restarts allowed to each stateless worker.
+        max_restarts: restarts allowed to each worker.
     """
 
     def __init__(
@@ -114,16 +127,19 @@ class TrialGroup:
         """Resolves when every bundle of the group is reserved."""
         return self.placement.ready()
 
-    def start(self) -> Any:
-        """Create the role workers and the runner in the reserved bundles; return the runner handle."""
+    def start(self, recoveries: int = 0) -> Any:
+        """Create the role workers and the runner in the reserved bundles; return the runner handle.
+
+        ``recoveries``: stateful workers the runner may recover in place (the trial's lost-process budget left).
+        """
         bundle = 1
         groups = {}
         for role in self.roles:
-            restarts = 0 if role.stateful else self.max_restarts
+            # A stateful worker's call is not retried: the restarted process lacks the state it needs.
             actor_class = ray.remote(
                 num_cpus=role.cpus,
                 num_gpus=role.gpus,
-                max_restarts=restarts,
+                max_restarts=self.max_restarts,
                 max_task_retries=0 if role.stateful else -1,
             )(role.worker)
             actors = []
@@ -136,7 +152,7 @@ class TrialGroup:
         runner_actor = ray.remote(num_cpus=self.runner_cpus, max_concurrency=2, max_restarts=0)(ProgramRunner)
         strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=0)
         self.runner = runner_actor.options(scheduling_strategy=strategy).remote(
-            self.spec, groups, self.runner_cpus, code_fingerprint()
+            self.spec, groups, self.runner_cpus, code_fingerprint(), recoveries
         )
         return self.runner
 

@@ -81,6 +81,8 @@ class TrialState:
     lost_left: int = 0
     lost: int = 0
     """Lost processes since the trial last completed a round: the step of the backoff."""
+    recovered: int = 0
+    """Role workers lost and recovered inside an attempt, over all attempts."""
     last_signature: str | None = None
     bad_checkpoints: set[int] = field(default_factory=set)
     logged_rounds: set[int] = field(default_factory=set)
@@ -406,7 +408,7 @@ class SweepScheduler:
 
         state = attempt.state
         if attempt.phase == "placing":
-            runner = attempt.group.start()
+            runner = attempt.group.start(recoveries=state.lost_left)
             attempt.machine_ref = runner.machine.remote()
             stored, notes = self.tracker.load_checkpoint(state.run_id, skip=state.bad_checkpoints)
             for note in notes:
@@ -423,7 +425,11 @@ class SweepScheduler:
             attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
             return False
 
-        round_report, data = value
+        round_report, data, recovered = value
+        for cause in recovered:  # stateful workers lost and recovered in the runner: the same budget
+            state.lost_left -= 1
+            state.recovered += 1
+            self.tracker.record_recovery(state.run_id, state.recovered, LOST_PROCESS, cause)
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
             self.tracker.record_machine(state.run_id, machine)

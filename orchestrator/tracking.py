@@ -438,6 +438,14 @@ class Tracker:
             run_id, f"class: {kind}\ncause: {cause}\n\n{detail}", f"failures/attempt_{attempt:03d}_{kind}.txt"
         )
 
+    def record_recovery(self, run_id: str, number: int, kind: str, cause: str) -> None:
+        """Say in the run that a worker was lost and recovered inside an attempt (the trial went on).
+
+        ``number`` counts the trial's recoveries (the metric's step); the run's status and error tags stay.
+        """
+        self.client.log_batch(run_id, metrics=[Metric(f"recovered/{kind}", 1.0, _now_ms(), number)])
+        self.client.log_text(run_id, f"class: {kind}\ncause: {cause}\n", f"failures/recovery_{number:03d}_{kind}.txt")
+
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
         """Close a trial's run: FINISHED with its summary metrics, or FAILED / KILLED."""
         if summary:

@@ -570,8 +570,8 @@ def test_killed_trainer_mid_training_resumes_from_the_last_checkpoint(tmp_path, 
     assert (outcome.finished, outcome.failed) == (1, 0)
 
     _, (child,) = sweep_runs(tracker.uri, "trainer_kill")
-    assert child.status == FINISHED and child.attempts == 2
-    assert child.metrics["failures/lost_process"] == 1.0
+    assert child.status == FINISHED and child.attempts == 1  # recovered in place: no new actor group
+    assert child.metrics["recovered/lost_process"] == 1.0 and "failures/lost_process" not in child.metrics
     assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
     assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
     expected = uninterrupted(sweep)

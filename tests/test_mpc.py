@@ -63,7 +63,7 @@ def test_restored_checkpoint_continues_bit_for_bit(task_name):
     total = uninterrupted.total_rounds()
     expected = [uninterrupted.run_round(i)[0] for i in range(total)]
     first = ProgramRunner(spec, {}, 1)
-    before = [first.run_round(i) for i in range(4)]  # mid-way through the second episode
+    before = [first.run_round(i)[:2] for i in range(4)]  # mid-way through the second episode
     resumed = ProgramRunner(spec, {}, 1)
     assert resumed.restore(before[-1][1]) == 4
     after = [resumed.run_round(i)[0] for i in range(4, total)]
@@ -75,7 +75,7 @@ def test_runner_refuses_rounds_out_of_order_and_foreign_checkpoints():
     runner = ProgramRunner(trial(), {}, 1)
     with pytest.raises(RuntimeError, match="round 1"):
         runner.run_round(1)
-    _, data = runner.run_round(0)
+    _, data, _ = runner.run_round(0)
     other = ProgramRunner(trial(seed=4), {}, 1)
     with pytest.raises(CheckpointMismatchError):
         other.restore(data)

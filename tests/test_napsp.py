@@ -202,7 +202,7 @@ def test_method_end_to_end_in_process():
     ]
     assert all(a.data.startswith(b"\x89PNG") for r in reports for a in r.artifacts)
     summary = reports[-1].summary
-    assert summary["episodes"] == 3 and summary["eval_success"] == pytest.approx(np.mean(success))
+    assert summary["total_episodes"] == 3 and summary["eval_success"] == pytest.approx(np.mean(success))
     assert set(NapspProgram.metrics.values()) <= set(summary)
 
 

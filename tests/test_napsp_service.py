@@ -131,8 +131,8 @@ def test_killed_distance_trainer_resumes_from_its_checkpoint(tmp_path, local_ray
     assert killed and (outcome.finished, outcome.failed) == (1, 0)
 
     _, (child,) = sweep_runs(tracker.uri, "distance_kill")
-    assert child.status == FINISHED and child.attempts == 2
-    assert child.metrics["failures/lost_process"] == 1.0
+    assert child.status == FINISHED and child.attempts == 1  # recovered in place: no new actor group
+    assert child.metrics["recovered/lost_process"] == 1.0 and "failures/lost_process" not in child.metrics
     assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
     assert [v for _, v in history(tracker, child.run_id, "distance_weights_version")] == [1, 2, 3, 4]
     # The restarted DistanceTrainer continued from the checkpoint: the same losses as an undisturbed run.

@@ -204,8 +204,9 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
     assert child.metrics["episode_return"] == undisturbed.metrics["episode_return"]
 
 
-def test_killed_trainer_resumes_from_the_last_checkpoint(tmp_path, local_ray):
-    """SIGKILL the stateful trainer mid-training: the round is lost, the trial resumes and ends as if unharmed."""
+def test_killed_trainer_is_recovered_in_place_from_the_last_round(tmp_path, local_ray):
+    """SIGKILL the stateful trainer mid-training: the round is lost, the restarted trainer gets the state of the
+    last completed round, the round runs again in the same attempt, and the trial ends as if unharmed."""
     sweep = toy_sweep(tmp_path, "trainer_kill", train_seconds=1.0)
     tracker = Tracker(default_tracking_uri(tmp_path))
     scheduler = SweepScheduler(load_sweep(sweep), tracker)
@@ -231,8 +232,11 @@ def test_killed_trainer_resumes_from_the_last_checkpoint(tmp_path, local_ray):
     assert killed and (outcome.finished, outcome.failed) == (1, 0)
 
     _, (child,) = sweep_runs(tracker.uri, "trainer_kill")
-    assert child.status == FINISHED and child.attempts == 2
-    assert child.metrics["failures/lost_process"] == 1.0
+    assert child.status == FINISHED and child.attempts == 1  # no new attempt, no new actor group
+    assert history(tracker, child.run_id, "recovered/lost_process") == [(1, 1.0)]
+    assert "failures/lost_process" not in child.metrics
+    (recovery,) = tracker.list_files(child.run_id, "failures")
+    assert recovery.endswith("recovery_001_lost_process.txt")
     assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
     assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
     assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
@@ -302,7 +306,7 @@ def test_a_trial_group_is_placed_all_at_once_or_not_at_all(tmp_path, local_ray):
         ray.kill(blocker)
         ray.get(group.ready(), timeout=30)
         runner = group.start()
-        report, _ = ray.get(runner.run_round.remote(0), timeout=60)
+        report, _, _ = ray.get(runner.run_round.remote(0), timeout=60)
         assert report.metrics["weights_version"] == 1
     finally:
         group.teardown()

@@ -22,7 +22,7 @@ import time
 from typing import Any
 
 from workers import checkpoint, code_fingerprint
-from workers.methods.base import Progress, RoleGroup, RoundReport, TrialSpec
+from workers.methods.base import Progress, RoleGroup, RoleWorkerLost, RoundReport, TrialSpec
 
 
 def use_cpus(cpus: float) -> None:
@@ -59,6 +59,10 @@ def rss_mb() -> float | None:
         return None
 
 
+RESTART_PAUSES = (0.2, 0.5, 1.0, 2.0, 4.0, 8.0, 15.0)
+"""Seconds to wait before each try to hand a restarted worker its state (about 30 s in all)."""
+
+
 class CheckpointMismatchError(ValueError):
     """A checkpoint written by another trial (method, task or seed differ)."""
 
@@ -66,14 +70,27 @@ class CheckpointMismatchError(ValueError):
 class ProgramRunner:
     """Runs the rounds of one trial's program.
 
+    A stateful role worker lost during a round (:class:`RoleWorkerLost`) costs that round only: the runner
+    keeps the checkpoint of the last completed round, restores the program from it (which hands the
+    restarted worker its state again) and runs the round again, up to ``recoveries`` times over the
+    attempt; each recovery is reported with the round's result.
+
     Args:
         trial: the trial.
         roles: a role group per role the program declared.
         cpus: CPUs this process holds.
         expected_code: the driver's :func:`workers.code_fingerprint`; a mismatch is refused.
+        recoveries: role workers this runner may recover in place (the trial's lost-process budget).
     """
 
-    def __init__(self, trial: TrialSpec, roles: dict[str, RoleGroup], cpus: int = 1, expected_code: str | None = None):
+    def __init__(
+        self,
+        trial: TrialSpec,
+        roles: dict[str, RoleGroup],
+        cpus: int = 1,
+        expected_code: str | None = None,
+        recoveries: int = 0,
+    ):
         if expected_code is not None and expected_code != code_fingerprint():
             raise RuntimeError(
                 f"this node runs different icemlab code (fingerprint {code_fingerprint()}) than the driver "
@@ -85,6 +102,8 @@ class ProgramRunner:
         self.program = METHODS[trial.method](trial, roles, cpus)
         use_cpus(cpus)
         self.next_round = 0
+        self.recoveries_left = recoveries
+        self._last_state: bytes | None = None  # the program after the last completed round, as a checkpoint
 
     def restore(self, data: bytes) -> int:
         """Continue from a checkpoint written by :meth:`run_round`; returns the next round's index."""
@@ -95,23 +114,62 @@ class ProgramRunner:
             raise CheckpointMismatchError(f"checkpoint of trial {identity} does not belong to this trial {expected}")
         self.program.load_state_dict(tree["program"])
         self.next_round = int(tree["next_round"])
+        self._last_state = data
         return self.next_round
 
-    def run_round(self, index: int) -> tuple[RoundReport, bytes]:
-        """Run round ``index`` (the next one); return its report and a checkpoint of the state after it."""
+    def run_round(self, index: int) -> tuple[RoundReport, bytes, list[str]]:
+        """Run round ``index`` (the next one).
+
+        Returns its report, a checkpoint of the state after it, and the causes of the role workers
+        recovered in place during it (see the class docstring).
+        """
         if index != self.next_round:
             raise RuntimeError(f"asked for round {index}, but the program is at round {self.next_round}")
+        if self._last_state is None:  # a fresh program: its state before round 0 is where a recovery restarts
+            self._last_state = self._checkpoint(index)
+        recovered: list[str] = []
         started = time.perf_counter()
-        report = self.program.run_round(index)
+        while True:
+            try:  # the round and the state after it (gathered from the stateful workers too)
+                report = self.program.run_round(index)
+                state = self._checkpoint(index + 1)
+                break
+            except RoleWorkerLost as lost:
+                if self.recoveries_left <= 0:
+                    raise
+                self.recoveries_left -= 1
+                recovered.append(str(lost))
+                self._restore_last_round()
         report = report._replace(seconds=time.perf_counter() - started)
         self.next_round = index + 1
-        state = {
-            "trial": {"method": self.trial.method, "task": self.trial.task, "seed": self.trial.seed},
-            "next_round": self.next_round,
-            "code": code_fingerprint(),
-            "program": self.program.state_dict(),
-        }
-        return report, checkpoint.to_bytes(state)
+        self._last_state = state
+        return report, state, recovered
+
+    def _restore_last_round(self) -> None:
+        """Put the program (and through it, every stateful worker) back to the last completed round.
+
+        The lost worker is being restarted; calls to it fail until it is up, so restoring is tried again
+        after growing pauses before the loss is handed on.
+        """
+        state = checkpoint.from_bytes(self._last_state)["program"]
+        for pause in RESTART_PAUSES:
+            time.sleep(pause)
+            try:
+                self.program.load_state_dict(state)
+                return
+            except RoleWorkerLost as lost:
+                failure = lost
+        raise failure
+
+    def _checkpoint(self, next_round: int) -> bytes:
+        return checkpoint.to_bytes(
+            {
+                "trial": {"method": self.trial.method, "task": self.trial.task, "seed": self.trial.seed},
+                "next_round": next_round,
+                "code": code_fingerprint(),
+                "program": self.program.state_dict(),
+            }
+        )
 
     def progress(self) -> dict[str, Any]:
         """The round under way and the program's progress within it (read while a round runs)."""

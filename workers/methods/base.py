@@ -61,9 +61,26 @@ class RoleSpec(NamedTuple):
     """Constructor arguments of the worker."""
     stateful: bool = False
     """A stateless worker's calls are pure: after a crash the call is retried on a restarted worker. A stateful
-    worker's loss loses the round in flight, which restarts from the trial's last checkpoint."""
+    worker's loss loses the round in flight: the worker is restarted empty, the program is restored from the
+    state after its last completed round, and the round runs again."""
     gpus: float = 0.0
     """GPUs each worker holds."""
+
+
+class RoleWorkerLost(RuntimeError):
+    """A role's worker process died during a call; role groups whose workers live in other processes raise it.
+
+    The worker is restarted without its state, so the round in flight cannot go on: the trial's runner
+    restores the program from its last completed round and runs the round again.
+    """
+
+    def __init__(self, role: str, cause: str):
+        super().__init__(f"a worker of role {role!r} was lost: {cause}")
+        self.role = role
+        self.cause = cause
+
+    def __reduce__(self):  # travels between processes inside Ray's task errors
+        return type(self), (self.role, self.cause)
 
 
 class Pending(Protocol):

@@ -370,7 +370,7 @@ class NapspProgram(Program):
         return math.nan
 
     def _summary(self) -> dict[str, float]:
-        summary: dict[str, float] = {"episodes": float(self.episodes)}
+        summary: dict[str, float] = {"total_episodes": float(self.episodes)}  # "episodes" is a per-round metric
         if self.history["eval_success"]:
             summary["eval_success"] = float(self._rolling("eval_success"))
             summary["max_eval_success"] = float(np.max(self.history["eval_success"]))

@@ -1,0 +1,82 @@
+"""A stateful worker lost mid-round costs that round only, inside the runner (no Ray: in-process roles).
+
+The role group below stands for Ray's restarted actor: on the call it is told
+to lose, it replaces its worker with a fresh one (the state is gone, as with a
+new process) and raises RoleWorkerLost, as orchestrator/placement.py does for
+a dead actor.
+"""
+
+from __future__ import annotations
+
+import pytest
+import toy_method
+
+from workers.actors import ProgramRunner
+from workers.methods import LocalRoleGroup, RoleWorkerLost, TrialSpec
+from workers.methods.base import RoleSpec
+
+
+class LosingGroup(LocalRoleGroup):
+    """Loses its worker on the listed calls of ``method`` (counted from 1), then serves a fresh one."""
+
+    def __init__(self, spec: RoleSpec, method: str, lose_on: set[int]):
+        super().__init__(spec.name, [spec.worker(**spec.kwargs)])
+        self.spec, self.method, self.lose_on, self.calls = spec, method, set(lose_on), 0
+
+    def submit(self, member: int, method: str, *args):
+        if method == self.method:
+            self.calls += 1
+            if self.calls in self.lose_on:
+                self.workers[member] = self.spec.worker(**self.spec.kwargs)  # restarted without its state
+                raise RoleWorkerLost(self.name, "killed")
+        return super().submit(member, method, *args)
+
+
+def toy_trial(rounds: int = 4) -> TrialSpec:
+    settings = toy_method.ToySettings(rounds=rounds, steps=10)
+    return TrialSpec("toy", "point_reach", settings, 0)
+
+
+def runner(trial: TrialSpec, lose_on: set[int], method: str = "train", recoveries: int = 5) -> ProgramRunner:
+    (spec,) = toy_method.ToyProgram.roles_for(trial, 1, {})
+    return ProgramRunner(trial, {"trainer": LosingGroup(spec, method, lose_on)}, 1, recoveries=recoveries)
+
+
+def losses(reports) -> list[float]:
+    return [report.metrics["loss"] for report, _, _ in reports]
+
+
+def test_a_worker_lost_mid_round_is_recovered_and_the_trial_ends_as_if_unharmed():
+    trial = toy_trial()
+    clean = runner(trial, set())
+    expected = [clean.run_round(i) for i in range(4)]
+    # Lost on the third training call (round 2), and once more on the retry of that round.
+    harmed = runner(trial, {3, 4})
+    got = [harmed.run_round(i) for i in range(4)]
+    assert losses(got) == losses(expected)
+    assert [len(recovered) for _, _, recovered in got] == [0, 0, 2, 0]
+    assert "a worker of role 'trainer' was lost: killed" in got[2][2][0]
+    assert [r.metrics["weights_version"] for r, _, _ in got] == [1.0, 2.0, 3.0, 4.0]  # the state came back
+    assert harmed.recoveries_left == 3
+
+
+def test_a_worker_lost_in_the_first_round_restarts_from_the_fresh_program():
+    trial = toy_trial(rounds=2)
+    expected = [runner(trial, set()).run_round(0)]
+    got = [runner(trial, {1}).run_round(0)]
+    assert losses(got) == losses(expected)
+
+
+def test_a_worker_lost_while_the_state_is_gathered_is_recovered_too():
+    trial = toy_trial(rounds=2)
+    clean = runner(trial, set())
+    expected = [clean.run_round(0), clean.run_round(1)]
+    harmed = runner(trial, {2}, method="state_dict")  # the 1st state_dict is the fresh program's
+    got = [harmed.run_round(0), harmed.run_round(1)]
+    assert losses(got) == losses(expected) and len(got[0][2]) == 1
+
+
+def test_without_recoveries_left_the_loss_is_handed_on():
+    harmed = runner(toy_trial(), {1}, recoveries=0)
+    with pytest.raises(RoleWorkerLost, match="trainer"):
+        harmed.run_round(0)
