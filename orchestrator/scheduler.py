@@ -89,6 +89,16 @@ class TrialState:
     rounds_done: int = 0
     not_before: float = 0.0
 
+    def backoff(self) -> float:
+        """Seconds to wait before the attempt after a lost process: growing while no round completes."""
+        seconds = BACKOFF_SECONDS[min(self.lost, len(BACKOFF_SECONDS) - 1)]
+        self.lost += 1
+        return seconds
+
+    def progressed(self) -> None:
+        """A round completed: the next loss is not part of a crash loop, so its backoff starts over."""
+        self.lost = 0
+
 
 @dataclass
 class Attempt:
@@ -452,7 +462,7 @@ class SweepScheduler:
             state.logged_rounds.add(round_report.index)
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
-        state.lost = 0  # progress since the last loss: the next one is not a crash loop, back off from the start
+        state.progressed()
         if not round_report.done:
             return False
         self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
@@ -478,8 +488,7 @@ class SweepScheduler:
             return "retry"
         if failure.kind == LOST_PROCESS and state.lost_left > 0:
             state.lost_left -= 1
-            state.not_before = time.monotonic() + BACKOFF_SECONDS[min(state.lost, len(BACKOFF_SECONDS) - 1)]
-            state.lost += 1
+            state.not_before = time.monotonic() + state.backoff()
             return "retry"
         if failure.kind == CODE_ERROR and not repeat and state.retries_left > 0:
             state.retries_left -= 1

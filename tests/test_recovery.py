@@ -80,3 +80,13 @@ def test_without_recoveries_left_the_loss_is_handed_on():
     harmed = runner(toy_trial(), {1}, recoveries=0)
     with pytest.raises(RoleWorkerLost, match="trainer"):
         harmed.run_round(0)
+
+
+def test_the_lost_process_backoff_grows_until_a_round_completes():
+    """Losses without progress back off longer each time; a completed round starts the backoff over."""
+    from orchestrator.scheduler import BACKOFF_SECONDS, TrialState
+
+    state = TrialState(trial=None, total_rounds=3)
+    assert [state.backoff() for _ in range(6)] == [*BACKOFF_SECONDS, BACKOFF_SECONDS[-1]]
+    state.progressed()
+    assert state.backoff() == BACKOFF_SECONDS[0]
