@@ -342,6 +342,21 @@ def cmd_status(args) -> int:
     return 0
 
 
+def _recorded_metric(tracker, run_id: str) -> tuple[str, str] | None:
+    """(metric name, mode) from the sweep file recorded on a sweep's run, if it names one."""
+    import yaml
+
+    text = tracker.recorded_sweep(run_id)
+    try:
+        recorded = yaml.safe_load(text) if text else None
+    except yaml.YAMLError:
+        return None
+    metric = recorded.get("metric") if isinstance(recorded, dict) else None
+    if not isinstance(metric, dict) or not isinstance(metric.get("name"), str):
+        return None
+    return metric["name"], str(metric.get("mode", "max"))
+
+
 def cmd_report(args) -> int:
     from orchestrator import report
     from orchestrator.scheduler import report_histories
@@ -357,11 +372,12 @@ def cmd_report(args) -> int:
     runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references
-    else:
+    else:  # by name: the metric the sweep file named when it ran (recorded on the sweep's run)
         from orchestrator.references import THESIS, load_references
 
         method = runs[0].params.get("method", "mpc") if runs else "mpc"
-        metric, mode, references = next(iter(METHODS[method].metrics)), "max", load_references(THESIS)
+        metric, mode = _recorded_metric(tracker, parent.run_id) or (next(iter(METHODS[method].metrics)), "max")
+        references = load_references(THESIS)
     summary = report.summarize(runs, metric, mode, references)
     print(report.format_table(summary))
     output = args.output or Path("reports") / name

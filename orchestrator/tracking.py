@@ -474,6 +474,14 @@ class Tracker:
     def download(self, run_id: str, path: str, directory: str | Path) -> Path:
         return Path(self.client.download_artifacts(run_id, path, str(directory)))
 
+    def recorded_sweep(self, run_id: str) -> str | None:
+        """The sweep file a sweep's run recorded when it started (None if it has none)."""
+        with tempfile.TemporaryDirectory() as directory:
+            try:
+                return self.download(run_id, "sweep.yaml", directory).read_text()
+            except (OSError, MlflowException):
+                return None
+
     # -------------------------------------------------------- checkpoints
     def save_checkpoint(self, run_id: str, round_index: int, data: bytes) -> None:
         """Write a checkpoint after round ``round_index``: state first, manifest last; keep the newest few."""

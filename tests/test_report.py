@@ -62,10 +62,12 @@ def test_the_thesis_tables_are_data_with_sources():
     assert all(r.source for r in references)
 
 
-def fabricate(tmp_path, values: dict[str, list[float]], metric_key="mean_return") -> Tracker:
+def fabricate(
+    tmp_path, values: dict[str, list[float]], metric_key="mean_return", sweep_text="name: mixed\n"
+) -> Tracker:
     """A store holding a finished point_reach sweep: per algorithm, one run per value."""
     tracker = Tracker(default_tracking_uri(tmp_path))
-    parent = tracker.start_sweep("mixed", "mixed", "hash", "name: mixed\n", {}, "dev")
+    parent = tracker.start_sweep("mixed", "mixed", "hash", sweep_text, {}, "dev")
     for algorithm, runs in values.items():
         for seed, value in enumerate(runs):
             params = {"method": "mpc", "task": "point_reach", "seed": seed, "planner.algorithm": algorithm,
@@ -148,3 +150,15 @@ def test_reference_values_match_as_numbers_and_null():
     assert entry.matches("t", "mpc", {"planner.budget": "100", "max_steps": "None"}, "m")
     assert not entry.matches("t", "mpc", {"planner.budget": "100", "max_steps": "50"}, "m")
     assert not entry.matches("t", "mpc", {"planner.budget": "300", "max_steps": "None"}, "m")
+
+
+def test_a_report_by_name_uses_the_metric_the_sweep_file_named(tmp_path):
+    """``icemlab report NAME`` (no file at hand) reads the metric from the sweep file recorded when it ran."""
+    text = "name: mixed\ntask: point_reach\nmetric: {name: success, mode: max}\n"
+    fabricate(tmp_path, {"icem": [1.0, 1.0, 0.0], "cem_mpc": [0.0, 0.0, 0.0]}, "success_rate", sweep_text=text)
+    result = cli("report", "mixed", "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    header = result.stdout.splitlines()[0]
+    assert "success" in header and "episode_return" not in header
+    lines = {line.split()[1]: line for line in result.stdout.splitlines() if line.startswith("point_reach")}
+    assert "0.67" in lines["icem"]
