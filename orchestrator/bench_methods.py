@@ -11,7 +11,9 @@
   matmuls of the same layer sizes and batch, per ensemble preset;
 * napsp: SAC + HER learner updates per second (Table 19 networks, the
   learned-distance reward recomputed at sampling time) against a bare torch
-  loop of the same networks on one fixed batch.
+  loop of the same networks on one fixed batch; and seconds per iteration
+  with the learner and the DistanceTrainer as two Ray actors, in ``sync``
+  order against ``pipelined``.
 
 The measurements themselves live next to the code they measure
 (workers/policy/benchmark.py, workers/dynamics/benchmark.py,
@@ -101,7 +103,55 @@ def napsp_figures(quick: bool) -> dict[str, Any]:
             updates=60 if quick else 200,
             blocks=3 if quick else 5,
         )
-    return {"tasks": results}
+    return {"tasks": results, "modes": napsp_mode_figures(quick)}
+
+
+NAPSP_MODES_TASK = "fetch_reach"
+
+
+def napsp_mode_figures(quick: bool) -> dict[str, Any]:
+    """Seconds per iteration, sync against pipelined, each with its learner and DistanceTrainer as Ray actors.
+
+    FetchReach with Table 19/20's networks and updates (``--quick``: a tenth of
+    the updates). Each role actor runs torch on one thread and asks Ray for half
+    a CPU, so both modes' four actors fit on two cores; only one mode runs at a
+    time, so a pipelined iteration has one core per role, as it would in a sweep.
+    """
+    import ray
+
+    from orchestrator.placement import RayRoleGroup
+    from orchestrator.scheduler import connect_ray
+    from workers.distance.bench import compare_modes
+    from workers.methods import TrialSpec
+    from workers.methods.napsp import NapspProgram, NapspSettings
+    from workers.tasks import make_task
+
+    task = make_task(NAPSP_MODES_TASK)
+    measured, warmup = (2, 1) if quick else (4, 1)
+    tenth = {"updates_per_episode": 10} if quick else {}
+    started_ray = connect_ray(None, num_cpus=2)
+    try:
+        programs = {}
+        for mode in ("sync", "pipelined"):
+            raw = NapspSettings.model_validate({
+                "mode": mode,
+                "iterations": warmup + measured,
+                "iterations_per_round": 1,
+                "plot_every": 0,
+                "learner": tenth,
+                "distance": {"temporal_updates_per_episode": 10, "triangular_updates_per_episode": 10} if quick else {},
+            })  # fmt: skip
+            spec = TrialSpec("napsp", NAPSP_MODES_TASK, NapspProgram.resolve(raw, task), 0)
+            roles = {}
+            for role in NapspProgram.roles_for(spec, 1, {}):
+                actor = ray.remote(num_cpus=0.5)(role.worker).remote(**role.kwargs)
+                roles[role.name] = RayRoleGroup(role.name, [actor])
+            programs[mode] = NapspProgram(spec, roles, 1)
+        figures = compare_modes(programs, measured, warmup)
+    finally:
+        if started_ray:
+            ray.shutdown()
+    return {"task": NAPSP_MODES_TASK, **figures}
 
 
 FIGURES = {"apex": apex_figures, "mbrl": mbrl_figures, "napsp": napsp_figures}
@@ -140,3 +190,10 @@ def print_method_report(results: dict[str, Any]) -> None:
                 f"{r['bare_updates_per_second']:7.1f}   ratio {r['ratio']:.2f} "
                 f"(median over blocks {r['ratio_median_over_blocks']:.2f})"
             )
+        m = results["napsp"]["modes"]
+        seconds = m["seconds_per_iteration"]
+        print(
+            f"  {m['task']}: one iteration, learner and DistanceTrainer as two actors: sync {seconds['sync']:.2f} s, "
+            f"pipelined {seconds['pipelined']:.2f} s   pipelined/sync {m['pipelined_over_sync']:.2f} "
+            f"(median of {m['iterations']})"
+        )

@@ -150,8 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("apex", "mbrl", "napsp"),
         default=None,
         help="learning methods to measure: apex (relabeling with 1 vs 2 workers, core-minutes per iteration), "
-        "mbrl (ensemble evaluator vs dense matmuls), napsp (learner vs a bare torch loop); default: all with "
-        "--full, none otherwise; --methods alone: all",
+        "mbrl (ensemble evaluator vs dense matmuls), napsp (learner vs a bare torch loop, pipelined vs sync "
+        "iterations); default: all with --full, none otherwise; --methods alone: all",
     )
     bench.add_argument("--json", action="store_true", help="print the figures as one JSON document")
 
@@ -545,8 +545,8 @@ COMMANDS = {
 def secure_local_ray(args) -> None:
     """A local Ray that icemlab starts keeps Ray's token authentication and is reachable from this machine only.
 
-    Its servers listen on every interface; the token is what keeps others out, whatever the environment
-    says. Ray's Prometheus exporter answers anyone without a token, and icemlab does not use it.
+    The token is kept whatever the environment says; Ray's Prometheus exporters answer anyone without a
+    token, and icemlab does not use them.
     Ray reads these variables when it is imported, so this runs before any command imports it.
     """
     if not (args.command == "bench" or (args.command == "run" and not args.address)):

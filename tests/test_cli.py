@@ -284,3 +284,6 @@ def test_bench_methods_json_reports_each_methods_ratios(capsys):
         assert preset["ratio"] == pytest.approx(preset["ensemble_flops_per_second"] / preset["dense_flops_per_second"])
     for task in methods["napsp"]["tasks"].values():
         assert task["ratio"] == pytest.approx(task["learner_updates_per_second"] / task["bare_updates_per_second"])
+    modes = methods["napsp"]["modes"]
+    seconds = modes["seconds_per_iteration"]
+    assert modes["pipelined_over_sync"] == pytest.approx(seconds["pipelined"] / seconds["sync"])

@@ -253,6 +253,17 @@ def test_roles_hold_one_unit_in_sync_and_two_when_pipelined():
         assert all(role.kwargs["threads"] == 2 for role in roles)
 
 
+def test_mode_comparison_runs_both_modes_alike_and_skips_the_warmup():
+    from workers.distance.bench import compare_modes
+
+    programs = {mode: build(trial(mode=mode, iterations=3)) for mode in ("sync", "pipelined")}
+    figures = compare_modes(programs, iterations=2, warmup=1)
+    assert all(program.iteration == 3 for program in programs.values())
+    seconds = figures["seconds_per_iteration"]
+    assert set(seconds) == {"sync", "pipelined"} and figures["iterations"] == 2
+    assert figures["pipelined_over_sync"] == pytest.approx(seconds["pipelined"] / seconds["sync"])
+
+
 def test_iterations_per_round_change_nothing_but_the_rounds():
     one = run_locally(NapspProgram, trial(iterations=3))
     blocks = run_locally(NapspProgram, trial(iterations=3, iterations_per_round=2))

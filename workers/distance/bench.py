@@ -1,4 +1,4 @@
-"""Learner update throughput against a bare torch loop of the same networks (for a later benchmark).
+"""Speed measurements of neural APSP for ``icemlab bench --methods``.
 
 :func:`measure_learner_updates` times :meth:`GoalLearner.update` (HER
 sampling from a filled buffer, the reward computed at sampling time through a
@@ -8,13 +8,16 @@ same gradient steps on the same network shapes with one fixed batch already in
 tensors, including the distance network's forward pass for the reward. The
 ratio of the two is the share of the update rate that the learner's
 bookkeeping leaves; the blocks alternate so the slow phases of a shared
-machine hit both alike. No figure is asserted here.
+machine hit both alike. :func:`compare_modes` times whole iterations of the
+method in its ``sync`` and ``pipelined`` modes, interleaved. No figure is
+asserted here.
 """
 
 from __future__ import annotations
 
 import copy
 import time
+from typing import Any
 
 import numpy as np
 import torch
@@ -184,3 +187,33 @@ def measure_learner_updates(
         "updates_per_side": float(total),
         "torch_threads": float(torch.get_num_threads()),
     }
+
+
+def compare_modes(programs: dict[str, Any], iterations: int, warmup: int = 1) -> dict[str, Any]:
+    """Seconds per iteration of napsp programs that differ only in ``mode``, iterations interleaved.
+
+    Each program must run one iteration per round (``iterations_per_round: 1``)
+    and plan at least ``warmup + iterations`` of them. The programs take turns
+    iteration by iteration, so the slow phases of a shared machine hit every
+    mode alike; the first ``warmup`` iterations of each are not counted (they
+    allocate, and a pipelined run's first iteration is in sync order because
+    there are no distance weights yet to train on).
+
+    Returns:
+        per mode, the median seconds per counted iteration (``time/iteration``
+        of the round), plus ``pipelined_over_sync`` when both modes are there.
+    """
+    seconds: dict[str, list[float]] = {mode: [] for mode in programs}
+    for index in range(warmup + iterations):
+        for mode, program in programs.items():
+            (elapsed,) = program.run_round(index).series["time/iteration"]
+            if index >= warmup:
+                seconds[mode].append(elapsed)
+    result: dict[str, Any] = {
+        "seconds_per_iteration": {mode: float(np.median(values)) for mode, values in seconds.items()},
+        "iterations": min(len(values) for values in seconds.values()),
+    }
+    medians = result["seconds_per_iteration"]
+    if {"sync", "pipelined"} <= set(medians):
+        result["pipelined_over_sync"] = medians["pipelined"] / medians["sync"]
+    return result
