@@ -43,7 +43,7 @@ from pydantic import Field
 from workers.data import EpisodeBuffer, Trajectory
 from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec
 from workers.planning import PlannerConfig
-from workers.policy.expert import ExpertSettings
+from workers.policy.expert import ExpertSettings, ExpertSwitches
 from workers.policy.network import PolicyWeights
 from workers.policy.training import PolicySettings, PolicyTrainer, TrainReport
 from workers.policy.worker import RelabelWorker, states_chunk
@@ -90,8 +90,11 @@ SUMMARY_ITERATIONS = 5
 """The summary averages the last this many iterations (the issue's 'mean of the last 5 iterations')."""
 
 
-class ApexSettings(MethodSettings):
+class ApexSettings(MethodSettings, ExpertSwitches):
     """APEX (thesis chapter 4, Alg. 3): distil the guided iCEM_pi expert into a policy, with DAgger."""
+
+    # The expert's switches and weights (warm_start ... epsilon) are inherited from ExpertSwitches, declared
+    # once for the sweep file and for what the expert and relabeling workers are told.
 
     planner: PlannerConfig = PlannerConfig()
     """The expert's planner (iCEM; budget 45, 100 or 300 in Table 9; horizon 30)."""
@@ -107,27 +110,6 @@ class ApexSettings(MethodSettings):
     """The policy network and its training (Table 11)."""
     dagger: bool = True
     """Relabel the states the policy visits with the expert and train on them too (Alg. 3 lines 9-12)."""
-    warm_start: bool = True
-    """iCEM_pi warm start: the mean from the policy's rollout at t = 0, the shifted mean's last action from the
-    policy afterwards (off: plain iCEM initialisation, App. C.2)."""
-    policy_samples: bool = True
-    """Put the policy's own h-step sequence among the last CEM-iteration's samples (replacing one)."""
-    guidance: bool = True
-    """Add the guidance cost lambda_1 sum_t ||a_t - pi(s_t)||^2 (eq. 15)."""
-    adaptive_lambda: bool = True
-    """lambda by eq. 17 at every CEM-iteration; off: the fixed values (iCEM_pi-GPS, APEX lambda-fixed)."""
-    c: float = Field(0.025, ge=0)
-    """c_1 of eq. 17 for the guidance term (Table 10: 0.025)."""
-    fixed_lambda: float = Field(1.0, ge=0)
-    """lambda_1 when not adaptive (the thesis tuned it per task and does not give it)."""
-    action_norm: bool = False
-    """Add the action-norm cost lambda_2 sum_t ||a_t|| (eq. 16)."""
-    c_action_norm: float = Field(0.025, ge=0)
-    """c_2 of eq. 17 for the action-norm term."""
-    fixed_lambda_action_norm: float = Field(0.01, ge=0)
-    """lambda_2 when not adaptive."""
-    epsilon: float = Field(1e-6, gt=0)
-    """eps of eq. 17 (not given in the thesis)."""
     relabel_chunk: int = Field(100, ge=1)
     """Consecutive states per relabeling call (the unit of work spread over the relabel workers)."""
     evaluation_episodes: int = Field(0, ge=0)
@@ -137,19 +119,7 @@ class ApexSettings(MethodSettings):
 
     def expert_settings(self) -> ExpertSettings:
         """What the expert and relabeling workers are told."""
-        return ExpertSettings(
-            planner=self.planner,
-            warm_start=self.warm_start,
-            policy_samples=self.policy_samples,
-            guidance=self.guidance,
-            adaptive_lambda=self.adaptive_lambda,
-            c=self.c,
-            fixed_lambda=self.fixed_lambda,
-            action_norm=self.action_norm,
-            c_action_norm=self.c_action_norm,
-            fixed_lambda_action_norm=self.fixed_lambda_action_norm,
-            epsilon=self.epsilon,
-        )
+        return ExpertSettings(planner=self.planner, **self.switches())
 
 
 def derived_seed(trial_seed: int, iteration: int, kind: str, index: int) -> int:

@@ -1,6 +1,6 @@
 """iCEM_pi (Alg. 2): iCEM warm-started by the policy, given the policy's own plan, guided towards it.
 
-Every piece is a switch of :class:`ExpertSettings`, so the ablations of
+Every piece is a switch of :class:`ExpertSwitches`, so the ablations of
 Fig. 15 and the baselines of Fig. 13 are settings:
 
 * **warm start**: at t = 0 the mean is the policy's closed-loop h-step
@@ -49,38 +49,49 @@ from workers.tasks import GroundTruthTask, SimState
 from workers.tasks.base import SimStates
 
 
-class ExpertSettings(BaseModel):
-    """The expert of APEX: iCEM_pi with the guided cost; what expert and relabeling workers are told."""
+class ExpertSwitches(BaseModel):
+    """The switches and weights of the APEX expert (iCEM_pi with the guided cost); a sweep's ``base`` sets them
+    through ``ApexSettings``, which adds them to the method's own fields."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
 
-    planner: PlannerConfig
-    """A resolved planner config (budget, horizon, iCEM switches)."""
     warm_start: bool = True
-    """Mean from the policy's rollout at t = 0; the shifted mean's last action from the policy afterwards."""
+    """iCEM_pi warm start: the mean from the policy's rollout at t = 0, the shifted mean's last action from the
+    policy afterwards (off: plain iCEM initialisation, App. C.2)."""
     policy_samples: bool = True
-    """The policy's own h-step sequence replaces one sample of the last CEM-iteration."""
+    """Put the policy's own h-step sequence among the last CEM-iteration's samples (replacing one)."""
     guidance: bool = True
-    """Weigh in C_1 = sum_t ||a_t - pi(s_t)||^2."""
+    """Add the guidance cost lambda_1 sum_t ||a_t - pi(s_t)||^2 (eq. 15)."""
     adaptive_lambda: bool = True
-    """lambda_j by eq. 17 at every CEM-iteration, else the fixed values."""
+    """lambda by eq. 17 at every CEM-iteration; off: the fixed values (iCEM_pi-GPS, APEX lambda-fixed)."""
     c: float = Field(0.025, ge=0)
-    """c_1 of eq. 17."""
+    """c_1 of eq. 17 for the guidance term (Table 10: 0.025)."""
     fixed_lambda: float = Field(1.0, ge=0)
-    """lambda_1 when not adaptive."""
+    """lambda_1 when not adaptive (the thesis tuned it per task and does not give it)."""
     action_norm: bool = False
-    """Weigh in C_2 = sum_t ||a_t||."""
+    """Add the action-norm cost lambda_2 sum_t ||a_t|| (eq. 16)."""
     c_action_norm: float = Field(0.025, ge=0)
-    """c_2 of eq. 17."""
-    fixed_lambda_action_norm: float = Field(0.0, ge=0)
-    """lambda_2 when not adaptive."""
+    """c_2 of eq. 17 for the action-norm term."""
+    fixed_lambda_action_norm: float = Field(0.01, ge=0)
+    """lambda_2 when not adaptive (not given in the thesis)."""
     epsilon: float = Field(1e-6, gt=0)
-    """eps of eq. 17."""
+    """eps of eq. 17 (not given in the thesis)."""
 
     @property
     def uses_policy(self) -> bool:
         """Whether the expert consults the policy at all (else it is plain iCEM)."""
         return self.warm_start or self.policy_samples or self.guidance
+
+    def switches(self) -> dict[str, object]:
+        """The values of the fields declared here (also when called on a subclass with more fields)."""
+        return {name: getattr(self, name) for name in ExpertSwitches.model_fields}
+
+
+class ExpertSettings(ExpertSwitches):
+    """What expert and relabeling workers are told: the switches and a resolved planner."""
+
+    planner: PlannerConfig
+    """A resolved planner config (budget, horizon, iCEM switches)."""
 
 
 class StepInfo(NamedTuple):
