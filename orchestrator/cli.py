@@ -192,14 +192,17 @@ def _load(path: Path):
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 
+def _missing_sqlite(uri: str) -> bool:
+    """Whether ``uri`` names an embedded store that does not exist (opening it would create it)."""
+    return uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).exists()
+
+
 def _existing_store(uri: str | None):
-    """A Tracker on the store if it exists already (plans never create one)."""
+    """A Tracker on the store if it exists already (plans, reports and status never create one)."""
     from orchestrator.tracking import Tracker, resolve_tracking_uri
 
     uri = resolve_tracking_uri(uri)
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).exists():
-        return None
-    return Tracker(uri)
+    return None if _missing_sqlite(uri) else Tracker(uri)
 
 
 def _print_plan(loaded, args) -> None:
@@ -302,13 +305,14 @@ def _sweep_name(argument: str):
 
 
 def cmd_status(args) -> int:
-    from orchestrator.tracking import Tracker
+    from orchestrator.tracking import resolve_tracking_uri
 
-    tracker = Tracker(args.tracking_uri)
+    tracker = _existing_store(args.tracking_uri)
     if not args.sweep:
-        sweeps = tracker.sweeps()
+        sweeps = tracker.sweeps() if tracker else []
         if not sweeps:
-            print(f"no sweeps in {tracker.uri}; start one with: icemlab run sweeps/quickstart.yaml")
+            uri = tracker.uri if tracker else resolve_tracking_uri(args.tracking_uri)
+            print(f"no sweeps in {uri}; start one with: icemlab run sweeps/quickstart.yaml")
             return 0
         for sweep in sweeps:
             children = tracker.trial_runs(sweep.run_id)
@@ -319,9 +323,9 @@ def cmd_status(args) -> int:
             )
         return 0
     name, experiment, _ = _sweep_name(args.sweep)
-    parent = tracker.find_sweep_run(experiment, name)
+    parent = tracker.find_sweep_run(experiment, name) if tracker else None
     if parent is None:
-        print(f"sweep {name!r} has not run in {tracker.uri}")
+        print(f"sweep {name!r} has not run in {resolve_tracking_uri(args.tracking_uri)}")
         return 1
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}")
     for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
@@ -358,17 +362,19 @@ def _recorded_metric(tracker, run_id: str) -> tuple[str, str] | None:
 
 
 def cmd_report(args) -> int:
+    from orchestrator.tracking import FINISHED, resolve_tracking_uri
+
+    tracker = _existing_store(args.tracking_uri)
+    name, experiment, loaded = _sweep_name(args.sweep)
+    parent = tracker.find_sweep_run(experiment, name) if tracker else None
+    if parent is None:
+        uri = resolve_tracking_uri(args.tracking_uri)
+        print(f"sweep {name!r} has not run in {uri}; run it with: icemlab run SWEEP.yaml", file=sys.stderr)
+        return 1
+    # Imported only when there is something to report: the methods bring torch and every task.
     from orchestrator import report
     from orchestrator.scheduler import report_histories
-    from orchestrator.tracking import FINISHED, Tracker
     from workers.methods import METHODS
-
-    tracker = Tracker(args.tracking_uri)
-    name, experiment, loaded = _sweep_name(args.sweep)
-    parent = tracker.find_sweep_run(experiment, name)
-    if parent is None:
-        print(f"sweep {name!r} has not run in {tracker.uri}; run it with: icemlab run SWEEP.yaml", file=sys.stderr)
-        return 1
     runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references
@@ -415,7 +421,7 @@ that (checked in Chromium with MLflow 3.17); the URL's workflowType does, so ice
 
 def _sweep_links(uri: str, base: str, newest: int = 5) -> list[tuple[str, str]]:
     """Links that open the newest sweeps' runs in the dashboard (for a store that exists)."""
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).exists():
+    if _missing_sqlite(uri):
         return []
     from orchestrator.tracking import Tracker
 

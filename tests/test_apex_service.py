@@ -66,6 +66,7 @@ def history(tracker: Tracker, run_id: str, key: str) -> list[tuple[int, float]]:
     return sorted(tracker.metric_history(run_id, key))
 
 
+@pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_smoke_sweep_runs_every_role_through_the_cli(tmp_path):
     started = time.monotonic()
     result = cli("run", str(ROOT / "sweeps" / "smoke" / "apex.yaml"), "--quiet", cwd=tmp_path, env=ENV, timeout=240)

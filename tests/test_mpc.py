@@ -55,7 +55,10 @@ def test_same_seed_same_episode_and_episodes_differ():
     assert first[0].metrics["episode_return"] != first[1].metrics["episode_return"]
 
 
-@pytest.mark.parametrize("task_name", ["point_reach", "halfcheetah_running", "fetch_pick_place_sparse"])
+@pytest.mark.parametrize(
+    "task_name",
+    ["point_reach", "halfcheetah_running", pytest.param("fetch_pick_place_sparse", marks=pytest.mark.slow)],
+)
 def test_restored_checkpoint_continues_bit_for_bit(task_name):
     """A runner that restores a mid-episode checkpoint produces exactly the uninterrupted trial."""
     spec = trial(task_name, seed=1, max_steps=9, round_steps=4, episodes=2)

@@ -67,6 +67,7 @@ def history(tracker: Tracker, run_id: str, key: str) -> list[tuple[int, float]]:
     return sorted(tracker.metric_history(run_id, key))
 
 
+@pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_smoke_sweep_runs_through_the_cli(tmp_path):
     """sweeps/smoke/napsp.yaml: every round and role, checkpoints, figures and the summary land in MLflow."""
     smoke = ROOT / "sweeps" / "smoke" / "napsp.yaml"

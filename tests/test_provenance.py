@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from helpers import cli, sweep_runs, write_sweep
 
 from orchestrator import provenance
@@ -11,6 +12,7 @@ from orchestrator.sweep import load_sweep
 from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
 
 
+@pytest.mark.slow  # several sweeps through the CLI
 def test_runs_record_what_ran_and_reproduce_gives_the_identical_return(tmp_path):
     sweep = write_sweep(
         tmp_path, "provenance", seeds=[0, 1], base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 12}
@@ -61,6 +63,7 @@ def test_reproduce_refuses_unknown_and_unfinished_runs(tmp_path):
     assert tracker.trial_run(running).status == "RUNNING"  # nothing changed
 
 
+@pytest.mark.slow  # several sweeps through the CLI
 def test_validate_plans_from_the_store_or_a_calibration(tmp_path):
     """A plan lists finished trials and estimates core-hours and wall time; it never creates a store."""
     sweep = write_sweep(

@@ -143,6 +143,10 @@ def test_report_of_an_unknown_sweep_changes_nothing(tmp_path):
     result = cli("report", "never_ran", cwd=tmp_path)
     assert result.returncode == 1 and "has not run" in result.stderr
     assert not (tmp_path / "reports").exists()
+    assert not (tmp_path / "mlflow.db").exists()  # nor an empty store
+    status = cli("status", "never_ran", cwd=tmp_path)
+    assert status.returncode == 1 and "has not run" in status.stdout
+    assert not (tmp_path / "mlflow.db").exists()
 
 
 def test_reference_values_match_as_numbers_and_null():

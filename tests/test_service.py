@@ -93,6 +93,7 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     assert {"trial.json", "checkpoints"} <= set(tracker.list_files(run_id))
 
 
+@pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local_ray):
     """A method that raises on round 2: two attempts (the repeat is identical), rounds 0-1 logged once."""
     sweep = toy_sweep(tmp_path, "raising", retries=3, fail_on_round=2)
@@ -118,6 +119,7 @@ def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local
     assert "FAILED" in status.stdout and "code_error: ValueError: toy method fails on round 2" in status.stdout
 
 
+@pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_a_refused_checkpoint_is_skipped_for_the_one_before(tmp_path, local_ray):
     """Resume from a store whose newest checkpoint was replaced by a pickle (with a matching manifest)."""
     import json
@@ -204,6 +206,7 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
     assert child.metrics["episode_return"] == undisturbed.metrics["episode_return"]
 
 
+@pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_killed_trainer_is_recovered_in_place_from_the_last_round(tmp_path, local_ray):
     """SIGKILL the stateful trainer mid-training: the round is lost, the restarted trainer gets the state of the
     last completed round, the round runs again in the same attempt, and the trial ends as if unharmed."""
@@ -293,6 +296,7 @@ def test_driver_sigkill_then_resume_continues_from_the_last_round(tmp_path, meth
     assert "already done" in result.stderr
 
 
+@pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_a_trial_group_is_placed_all_at_once_or_not_at_all(tmp_path, local_ray):
     """The toy trial needs 2 CPUs (runner + trainer): with one CPU taken, nothing of it starts."""
     spec = load_sweep(toy_sweep(tmp_path, "placing")).trials[0].config.spec()
