@@ -375,6 +375,7 @@ def cmd_report(args) -> int:
     from orchestrator import report
     from orchestrator.scheduler import report_histories
     from workers.methods import METHODS
+
     runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references

@@ -359,7 +359,7 @@ Histories = dict[str, dict[str, list[tuple[int, float]]]]
 """run id -> metric -> [(step, value)], the curves of finished trials."""
 
 
-def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str]):
+def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str], step_label: str = "step"):
     """Each curve metric against its step: one line per configuration, mean over seeds with +- sem shading."""
     metrics = list(metrics)
     figure, axes = plt.subplots(1, len(metrics), figsize=(6.5 * len(metrics), 4), squeeze=False)
@@ -376,7 +376,7 @@ def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str]
             label = f"{group.task} {group.name()} (n={group.n})"
             axis.plot(steps, mean, label=label)
             axis.fill_between(steps, mean - sem, mean + sem, alpha=0.2)
-        axis.set_xlabel("step")
+        axis.set_xlabel(step_label)
         axis.set_ylabel(metric)
         axis.set_title(f"{metric}: mean +- sem over seeds")
         axis.grid(alpha=0.3)
@@ -400,7 +400,7 @@ def write_files(summary: Summary, directory: Path, histories: Histories | None =
         plt.close(figure)
     program = METHODS.get(summary.groups[0].method)
     if histories and program is not None and program.curves:
-        figure = curves_figure(summary, histories, program.curves)
+        figure = curves_figure(summary, histories, program.curves, program.curve_step)
         paths.append(directory / "curves.png")
         figure.savefig(paths[-1], dpi=110)
         plt.close(figure)

@@ -166,3 +166,16 @@ def test_a_report_by_name_uses_the_metric_the_sweep_file_named(tmp_path):
     assert "success" in header and "episode_return" not in header
     lines = {line.split()[1]: line for line in result.stdout.splitlines() if line.startswith("point_reach")}
     assert "0.67" in lines["icem"]
+
+
+def test_curves_are_drawn_against_what_the_methods_step_counts():
+    from orchestrator.tracking import TrialRun
+    from workers.methods.napsp import NapspProgram
+
+    params = {"method": "napsp", "task": "point_maze", "seed": "0", "reward": "ours_her", "mode": "sync"}
+    run = TrialRun("id", "key", FINISHED, "name", params, {}, {"eval_success": 0.5})
+    summary = report.summarize([run], "eval_success", references=[])
+    histories = {"id": {"rollouts/eval_success": [(2, 0.0), (4, 0.5)]}}
+    figure = report.curves_figure(summary, histories, ["rollouts/eval_success"], NapspProgram.curve_step)
+    assert figure.axes[0].get_xlabel().startswith("collected episodes")
+    assert figure.axes[0].lines[0].get_xdata().tolist() == [2, 4]

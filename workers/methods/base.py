@@ -215,6 +215,8 @@ class Program(ABC):
     the other swept paths)."""
     curves: ClassVar[tuple[str, ...]] = ()
     """Metrics that reports draw as curves against their step, one line per configuration (mean over seeds)."""
+    curve_step: ClassVar[str] = "step"
+    """What the step of those curves counts (the reports' x-axis label)."""
     role_names: ClassVar[tuple[str, ...]] = ()
     """Names of the roles :meth:`roles_for` may declare (sweeps size them under ``resources.workers``)."""
 

@@ -53,6 +53,7 @@ class MpcProgram(Program):
     metrics = {"episode_return": "mean_return", "success": "success_rate"}
     label_paths = {"algorithm": ("algorithm", "planner.algorithm"), "budget": ("planner.budget",)}
     curves = ("step/return",)
+    curve_step = "environment step"
     role_names = ("simulation",)
 
     settings: MpcSettings

@@ -137,6 +137,7 @@ class NapspProgram(Program):
     }
     label_paths: ClassVar[dict[str, tuple[str, ...]]] = {"reward": ("reward",), "mode": ("mode",)}
     curves = ("rollouts/eval_success", "rollouts/eval_max_reward")
+    curve_step = "collected episodes (rollouts, Fig. 22)"
     role_names = ("learner", "distance")
 
     settings: NapspSettings
