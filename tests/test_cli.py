@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-import time
 from pathlib import Path
 
 import pytest
@@ -243,8 +242,9 @@ def test_bench_json_reports_ratios_per_task_and_budget(capsys):
         assert e["thesis_seconds_per_step_1_thread"] is None  # no published figure for the test task
 
 
-def test_two_million_seeds_are_refused_at_bounded_cost(tmp_path):
-    """Bad input is refused in seconds: a 16 MB seed list by its size, a seed range by max_trials."""
+def test_two_million_seeds_are_refused_before_parsing_or_expanding(tmp_path):
+    """A 16 MB seed list is refused by its size before YAML parses it; a seed range by max_trials before the
+    trials are built (the message says which guard fired; neither is a time limit)."""
     listed = tmp_path / "listed.yaml"
     listed.write_text("name: x\ntask: point_reach\nseeds: [" + ", ".join(map(str, range(2_000_000))) + "]\n")
     ranged = tmp_path / "ranged.yaml"
@@ -253,9 +253,7 @@ def test_two_million_seeds_are_refused_at_bounded_cost(tmp_path):
         listed: (1, "(file)", "write long seed lists as seeds: {first: 0, count: N}"),
         ranged: (3, "seeds", "2,000,000 trials, above max_trials = 1000"),
     }.items():
-        started = time.monotonic()
         result = cli("validate", str(sweep), cwd=tmp_path)
-        assert time.monotonic() - started < 20  # interpreter start included
         assert result.returncode == 2
         problem = PROBLEM_LINE.match(result.stderr.splitlines()[0])
         assert problem and (int(problem["line"]), problem["path"]) == (line, path)
