@@ -28,7 +28,7 @@ from orchestrator.references import Reference, find  # noqa: E402
 from orchestrator.tracking import TrialRun  # noqa: E402
 from workers.methods import METHODS  # noqa: E402
 
-RATE_METRICS = {"success"}
+RATE_METRICS = {"success", "box_drops"}
 """Metrics that are rates of per-episode successes: intervals and tests treat them as binomial."""
 
 

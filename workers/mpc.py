@@ -52,6 +52,8 @@ class StepRecord(NamedTuple):
     planning_seconds: float
     trajectories: int
     best_cost: float
+    components: dict[str, float] = {}
+    """The evaluator's cost terms of the executed plan (c, c_A, u_A, ... with a noisy ensemble), else empty."""
 
 
 class EpisodeResult(NamedTuple):
@@ -75,6 +77,8 @@ class EpisodeResult(NamedTuple):
     """Planning horizon; trajectories x horizon = simulated environment steps."""
     frame_skip: int
     """Physics steps per environment step."""
+    components: dict[str, float] = {}
+    """Means over the episode's steps of the executed plans' cost terms (empty for plain costs)."""
 
     @property
     def simulated_steps(self) -> int:
@@ -158,7 +162,13 @@ class MpcEpisode:
                 goals=self.task.goals(outcome.observation),
             )
             record = StepRecord(
-                self.t, outcome.reward, outcome.goal_achieved, seconds, result.trajectories, result.best_cost
+                self.t,
+                outcome.reward,
+                outcome.goal_achieved,
+                seconds,
+                result.trajectories,
+                result.best_cost,
+                dict(result.components),
             )
             self.records.append(record)
             new.append(record)
@@ -180,6 +190,10 @@ class MpcEpisode:
             best_costs=np.array([r.best_cost for r in self.records]),
             horizon=self.planner.config.horizon,
             frame_skip=self.task.frame_skip,
+            components={
+                name: float(np.mean([r.components[name] for r in self.records]))
+                for name in (self.records[0].components if self.records else ())
+            },
         )
 
     def trajectory(self) -> Trajectory:
@@ -191,6 +205,8 @@ class MpcEpisode:
         """Environment, planner and records: enough to continue the episode elsewhere."""
         records = {name: np.array([getattr(r, name) for r in self.records]) for name in _RECORD_FIELDS}
         records["goal_achieved"] = np.array([bool(r.goal_achieved) for r in self.records])
+        names = self.records[0].components if self.records else ()
+        records["components"] = {name: np.array([r.components[name] for r in self.records]) for name in names}
         return {
             "seed": self.seed,
             "steps": self.steps,
@@ -207,6 +223,7 @@ class MpcEpisode:
         self.planner.load_state_dict(state["planner"])
         records = state["records"]
         flags = bool(state["has_goal_flags"])
+        components = records.get("components") or {}
         self.records = [
             StepRecord(
                 t,
@@ -215,6 +232,7 @@ class MpcEpisode:
                 float(records["planning_seconds"][t]),
                 int(records["trajectories"][t]),
                 float(records["best_cost"][t]),
+                {name: float(values[t]) for name, values in components.items()},
             )
             for t in range(len(records["reward"]))
         ]

@@ -65,8 +65,15 @@ class BatchEvaluator:
             initial_warmstart=warmstart,
         )
 
-    def simulate(self, state: SimState, actions: np.ndarray, keep_substeps: bool = False) -> RolloutBatch:
-        """Simulate N action sequences (N, h, d) in [-1, 1] from ``state``."""
+    def simulate(
+        self, state: SimState, actions: np.ndarray, keep_substeps: bool = False, draws: np.ndarray | None = None
+    ) -> RolloutBatch:
+        """Simulate N action sequences (N, h, d) in [-1, 1] from ``state``.
+
+        ``draws`` (N, h, noise_dim): standard-normal draws of a noisy task's noise process, one set per
+        sequence and step (:meth:`GroundTruthTask.noisy_actions`); None simulates without noise. The batch
+        records the chosen actions, not the noisy ones.
+        """
         actions = np.asarray(actions, dtype=np.float64)
         if actions.ndim != 3 or actions.shape[2] != self.task.action_dim or 0 in actions.shape:
             raise ValueError(
@@ -74,8 +81,14 @@ class BatchEvaluator:
             )
         if not np.isfinite(actions).all():
             raise ValueError("actions contain NaN or infinite values")
-        self.task.load_into(self.model, state)
         n, horizon, _ = actions.shape
+        if draws is not None:
+            draws = np.asarray(draws, dtype=np.float64)
+            if not self.task.noise_dim or not self.task.feedback_control:
+                raise ValueError(f"{self.task.name} has no noise process that draws could drive")
+            if draws.shape != (n, horizon, self.task.noise_dim):
+                raise ValueError(f"draws must be {(n, horizon, self.task.noise_dim)}, got shape {draws.shape}")
+        self.task.load_into(self.model, state)
         skip = self.task.frame_skip
         warmstart = state.warmstart[None]
         before_last = None
@@ -94,7 +107,10 @@ class BatchEvaluator:
             if keep_substeps:
                 before_last = np.empty_like(states)
             for t in range(horizon):
-                control = self.task.feedback_controls(self.model, state, actions[:, t], physics, current_frames)
+                actions_t = actions[:, t]
+                if draws is not None:
+                    actions_t = self.task.noisy_actions(actions_t, current_frames, draws[:, t])
+                control = self.task.feedback_controls(self.model, state, actions_t, physics, current_frames)
                 # The solver warm start is only known for the captured state; later
                 # steps start cold (differences at the solver's tolerance).
                 substeps, sensors = self._run(physics, control[:, None, :], skip, warmstart if t == 0 else None)
@@ -111,12 +127,12 @@ class BatchEvaluator:
         start = np.broadcast_to(state.physics, substeps[:, :1].shape)
         return np.concatenate([start, substeps[:, :-1]], axis=1)
 
-    def costs(self, state: SimState, actions: np.ndarray) -> np.ndarray:
+    def costs(self, state: SimState, actions: np.ndarray, draws: np.ndarray | None = None) -> np.ndarray:
         """(N,) planning cost of each sequence: the task's per-step costs summed over the horizon."""
-        batch = self.simulate(state, actions)
+        batch = self.simulate(state, actions, draws=draws)
         return self.task.costs(self.model, batch).sum(axis=1)
 
-    def rewards(self, state: SimState, actions: np.ndarray) -> np.ndarray:
-        """(N, h) per-step rewards, equal to those of the real environment."""
-        batch = self.simulate(state, actions, keep_substeps=self.task.needs_substeps)
+    def rewards(self, state: SimState, actions: np.ndarray, draws: np.ndarray | None = None) -> np.ndarray:
+        """(N, h) per-step rewards, equal to those of the real environment (given its noise draws, if any)."""
+        batch = self.simulate(state, actions, keep_substeps=self.task.needs_substeps, draws=draws)
         return self.task.rewards(self.model, batch)

@@ -5,6 +5,7 @@
 * :mod:`~workers.dynamics.propagation`: PETSUS, TS1 particles plus mean propagation (eq. 20-24).
 * :mod:`~workers.dynamics.costs`: RAZER's cost terms (eq. 25-27, 34-35).
 * :mod:`~workers.dynamics.evaluator`: the planner-facing cost function.
+* :mod:`~workers.dynamics.ground_truth`: the same costs over an ensemble of noisy ground-truth simulators.
 * :mod:`~workers.dynamics.trainer`: the EnsembleTrainer worker (the ``mbrl`` method's stateful role).
 * :mod:`~workers.dynamics.episodes`: MPC episodes on a learned model, and the planning worker.
 * :mod:`~workers.dynamics.benchmark`: evaluator throughput against dense matmuls.
@@ -32,6 +33,8 @@ _EXPORTS = {
     "gaussian_nll": "ensemble",
     "DEFAULT_PARTICLES": "evaluator",
     "EnsembleEvaluator": "evaluator",
+    "GroundTruthEnsembleEvaluator": "ground_truth",
+    "StateDraws": "ground_truth",
     "Propagation": "propagation",
     "petsus_propagate": "propagation",
     "ENSEMBLE_PRESETS": "settings",

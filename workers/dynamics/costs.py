@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from workers.dynamics.propagation import Propagation
@@ -105,16 +106,35 @@ def sequence_costs(
     cost = task_cost(
         previous.reshape(-1, d), per_particle_actions.reshape(n * p * h, -1), particles.reshape(-1, d)
     ).reshape(n, p, h)
-    task = cost.mean(dim=1).sum(dim=1)
+    return particle_cost_terms(cost, particles, propagation.var_aleatoric, propagation.var_epistemic, settings)
 
-    u_a = reduce_uncertainty(propagation.var_aleatoric, settings.uncertainty_reduction, settings.uncertainty_dims)
+
+def particle_cost_terms(
+    costs: torch.Tensor,
+    particles: torch.Tensor,
+    var_aleatoric: torch.Tensor,
+    var_epistemic: torch.Tensor | None,
+    settings: RazerSettings,
+) -> CostTerms:
+    """RAZER's cost terms from per-particle step costs and the uncertainties, however the particles came about.
+
+    Args:
+        costs: (N, P, h) task cost of every particle step.
+        particles: (N, P, h, d) particle states (the safety term's moments).
+        var_aleatoric: (N, h, d) Var_A per step.
+        var_epistemic: (N, h, d) Var_E per step, None without mean states.
+        settings: the weights and switches.
+    """
+    task = costs.mean(dim=1).sum(dim=1)
+
+    u_a = reduce_uncertainty(var_aleatoric, settings.uncertainty_reduction, settings.uncertainty_dims)
     aleatoric_uncertainty = u_a.sum(dim=1)
     aleatoric = settings.aleatoric_weight * aleatoric_uncertainty
 
     epistemic_uncertainty = None
     epistemic = torch.zeros_like(task)
-    if propagation.var_epistemic is not None:
-        u_e = reduce_uncertainty(propagation.var_epistemic, settings.uncertainty_reduction, settings.uncertainty_dims)
+    if var_epistemic is not None:
+        u_e = reduce_uncertainty(var_epistemic, settings.uncertainty_reduction, settings.uncertainty_dims)
         epistemic_uncertainty = u_e.sum(dim=1)
         epistemic = -settings.epistemic_weight * epistemic_uncertainty
     elif settings.epistemic_weight > 0:
@@ -136,3 +156,24 @@ def sequence_costs(
         epistemic_uncertainty=epistemic_uncertainty,
         violation_steps=violation_steps,
     )
+
+
+def terms_as_numpy(terms: CostTerms) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(total (N,), components) as evaluators hand them to the planner, each (N,) float64.
+
+    Components: ``c`` task cost (eq. 25), ``c_A`` aleatoric penalty (eq. 26), ``c_E`` epistemic bonus
+    (eq. 27, <= 0), ``c_S`` safety penalty (eq. 35), ``u_A`` and ``u_E`` the unweighted uncertainty sums
+    (``u_E`` only with mean states), and ``violation_steps``. ``total`` = c + c_A + c_E + c_S.
+    """
+    components = {
+        "c": terms.task,
+        "c_A": terms.aleatoric,
+        "c_E": terms.epistemic,
+        "c_S": terms.safety,
+        "u_A": terms.aleatoric_uncertainty,
+        "violation_steps": terms.violation_steps,
+    }
+    if terms.epistemic_uncertainty is not None:
+        components["u_E"] = terms.epistemic_uncertainty
+    as_numpy = {name: value.double().numpy() for name, value in components.items()}
+    return terms.total.double().numpy(), as_numpy

@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from workers.dynamics.costs import CostTerms, RazerSettings, TaskCost, sequence_costs
+from workers.dynamics.costs import CostTerms, RazerSettings, TaskCost, sequence_costs, terms_as_numpy
 from workers.dynamics.ensemble import DynamicsEnsemble
 from workers.dynamics.propagation import Propagation, petsus_propagate
 
@@ -88,19 +88,7 @@ class EnsembleEvaluator:
         ``u_E`` the unweighted uncertainty sums (``u_E`` only with mean propagation), and
         ``violation_steps``. ``total`` = c + c_A + c_E + c_S.
         """
-        terms = self.terms(observation, actions)
-        components = {
-            "c": terms.task,
-            "c_A": terms.aleatoric,
-            "c_E": terms.epistemic,
-            "c_S": terms.safety,
-            "u_A": terms.aleatoric_uncertainty,
-            "violation_steps": terms.violation_steps,
-        }
-        if terms.epistemic_uncertainty is not None:
-            components["u_E"] = terms.epistemic_uncertainty
-        as_numpy = {name: value.double().numpy() for name, value in components.items()}
-        return terms.total.double().numpy(), as_numpy
+        return terms_as_numpy(self.terms(observation, actions))
 
     def cost_function(self, observation: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
         """The planner's CostFunction for one state: action sequences (N, h, d) -> total costs (N,)."""

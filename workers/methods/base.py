@@ -21,7 +21,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar, NamedTuple, Protocol
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 
 class MethodSettings(BaseModel):
@@ -31,6 +32,14 @@ class MethodSettings(BaseModel):
 
     task_options: dict[str, Any] = {}
     """Switches of the task (see `icemlab tasks`), e.g. flip_penalty, velocity_term."""
+
+
+def located_error(loc: tuple[Any, ...], message: str, value: Any = None) -> ValidationError:
+    """A ValidationError of a method's settings at ``loc``, for what only the task rules out (sweep files
+    report it at the line of that setting)."""
+    message = message.replace("{", "(").replace("}", ")")
+    detail = InitErrorDetails(type=PydanticCustomError("task_mismatch", message), loc=loc, input=value)
+    return ValidationError.from_exception_data("MethodSettings", [detail])
 
 
 class TrialSpec(NamedTuple):

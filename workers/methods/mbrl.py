@@ -57,7 +57,15 @@ from workers.dynamics.settings import (
     SafetyBox,
     UncertaintyReduction,
 )
-from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec
+from workers.methods.base import (
+    Artifact,
+    MethodSettings,
+    Program,
+    RoleSpec,
+    RoundReport,
+    TrialSpec,
+    located_error,
+)
 from workers.planning.config import PlannerConfig
 
 PresetName = Literal["bridge_maze", "noisy_halfcheetah", "small"]
@@ -240,13 +248,6 @@ class MbrlSettings(MethodSettings):
 
 
 # ------------------------------------------------------------------ helpers
-def located_error(loc: tuple[Any, ...], message: str, value: Any = None) -> ValidationError:
-    """A ValidationError at ``loc`` (sweep files report it at the line of that setting)."""
-    message = message.replace("{", "(").replace("}", ")")
-    detail = InitErrorDetails(type=PydanticCustomError("task_mismatch", message), loc=loc, input=value)
-    return ValidationError.from_exception_data("MbrlSettings", [detail])
-
-
 def prefixed(error: ValidationError, prefix: tuple[Any, ...]) -> ValidationError:
     """The same errors, located under ``prefix``."""
     details = [

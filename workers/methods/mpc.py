@@ -5,6 +5,10 @@ segment of ``round_steps`` environment steps of an episode: the trial's state
 is checkpointed after every segment (environment, planner memory and random
 state, the episode's records), so a lost process costs at most one segment and
 the resumed episode is the same, step for step, as an uninterrupted one.
+
+With ``ensemble`` set, the planner plans on P noisy ground-truth rollouts per
+sequence with RAZER's cost (thesis App. D.4, Noisy-FetchPickAndPlace, Fig.
+19b; workers/dynamics/ground_truth.py): ``aleatoric_weight`` 0 is PETS.
 """
 
 from __future__ import annotations
@@ -14,13 +18,30 @@ import math
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 
-from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec
+from workers.dynamics.settings import UncertaintyReduction
+from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec, located_error
 from workers.mpc import MpcEpisode
 from workers.planning import CEMPlanner, PlannerConfig
 from workers.simulation import SimulationPool
 from workers.tasks import GroundTruthTask, make_task
+
+
+class GroundTruthEnsembleSettings(BaseModel):
+    """Plan on an ensemble of noisy ground-truth simulators with RAZER's cost (App. D.4); w_A = 0 is PETS."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    particles: int = Field(5, ge=1)
+    """P, noisy rollouts per action sequence, each with its own draws of the task's noise (not in the thesis)."""
+    aleatoric_weight: float = Field(0.0, ge=0)
+    """w_A of the aleatoric penalty (eq. 26) on the particles' spread; 0: PETS, the mean particle cost."""
+    uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
+    """How the per-dimension standard deviations combine (workers/dynamics/costs.py)."""
+    uncertainty_dims: tuple[int, ...] | None = None
+    """Observation dimensions whose spread is Var_A; None: the task's own (the box position on
+    noisy_fetch_pick_place)."""
 
 
 class MpcSettings(MethodSettings):
@@ -35,6 +56,9 @@ class MpcSettings(MethodSettings):
     round_steps: int = Field(100, ge=1)
     """Environment steps per round: the trial is checkpointed this often, and a lost process repeats at most
     this many steps. Results do not depend on it."""
+    ensemble: GroundTruthEnsembleSettings | None = None
+    """Plan on P noisy ground-truth particles per sequence with RAZER's cost (tasks with a noise process:
+    noisy_fetch_pick_place); None: one noise-free rollout per sequence."""
 
 
 def episode_seed(trial_seed: int, episode: int) -> int:
@@ -50,7 +74,7 @@ class MpcProgram(Program):
     name = "mpc"
     Settings = MpcSettings
     description = "MPC episodes with iCEM or a CEM baseline on MuJoCo ground truth (chapter 3)"
-    metrics = {"episode_return": "mean_return", "success": "success_rate"}
+    metrics = {"episode_return": "mean_return", "success": "success_rate", "box_drops": "mean_box_drops"}
     label_paths = {"algorithm": ("algorithm", "planner.algorithm"), "budget": ("planner.budget",)}
     curves = ("step/return",)
     curve_step = "environment step"
@@ -60,13 +84,41 @@ class MpcProgram(Program):
 
     @classmethod
     def resolve(cls, settings: MpcSettings, task: GroundTruthTask) -> MpcSettings:
+        if settings.ensemble is not None:
+            cls._check_ensemble(settings.ensemble, task)
         return settings.model_copy(update={"planner": settings.planner.resolved(task.colored_noise_beta)})
+
+    @staticmethod
+    def _check_ensemble(ensemble: GroundTruthEnsembleSettings, task: GroundTruthTask) -> None:
+        """Refuse ensemble settings that the task cannot honour, at the setting's location."""
+        if not task.noise_dim:
+            raise located_error(
+                ("ensemble",),
+                f"{task.name} has deterministic dynamics: every particle would be the same rollout; an ensemble "
+                "of noisy ground-truth simulators needs a task with a noise process (noisy_fetch_pick_place)",
+            )
+        if not task.batch_observations or task.observation_dim is None:
+            raise located_error(("ensemble",), f"{task.name} computes no observations of simulated batches")
+        dims = ensemble.uncertainty_dims or ()
+        outside = [d for d in dims if d >= task.observation_dim]
+        if outside:
+            raise located_error(
+                ("ensemble", "uncertainty_dims"),
+                f"dimension {outside[0]} is outside {task.name}'s {task.observation_dim}-d observation "
+                f"(0 to {task.observation_dim - 1})",
+                list(dims),
+            )
 
     @classmethod
     def roles_for(cls, trial: TrialSpec, unit_cpus: int, counts) -> list[RoleSpec]:
         # The runner simulates with a co-located worker; further workers are the role's actors.
         remote = max(0, counts.get("simulation", 1) - 1)
-        kwargs = {"task_name": trial.task, "threads": unit_cpus, "task_options": trial.settings.task_options}
+        kwargs = {
+            "task_name": trial.task,
+            "threads": unit_cpus,
+            "task_options": trial.settings.task_options,
+            "ensemble": cls._ensemble(trial.settings),
+        }
         from workers.simulation import SimulationWorker
 
         return [RoleSpec("simulation", SimulationWorker, remote, unit_cpus, kwargs)] if remote else []
@@ -85,7 +137,7 @@ class MpcProgram(Program):
 
         task = make_task(trial.task, trial.settings.task_options)
         env = task.make_env()
-        pool = SimulationPool(trial.task, cpus, None, trial.settings.task_options)
+        pool = SimulationPool(trial.task, cpus, None, trial.settings.task_options, cls._ensemble(trial.settings))
         try:
             planner = CEMPlanner(trial.settings.planner, task.action_dim, seed=trial.seed)
             episode = MpcEpisode(task, env, planner, pool, trial.seed, steps)
@@ -96,6 +148,10 @@ class MpcProgram(Program):
         finally:
             pool.close()
             env.close()
+
+    @staticmethod
+    def _ensemble(settings: MpcSettings) -> dict[str, Any] | None:
+        return None if settings.ensemble is None else settings.ensemble.model_dump()
 
     @classmethod
     def labels(cls, trial: TrialSpec) -> dict[str, str]:
@@ -113,7 +169,10 @@ class MpcProgram(Program):
         self.env = self.task.make_env()
         self.steps = self.settings.max_steps or self.task.episode_length
         self.segments = math.ceil(self.steps / self.settings.round_steps)
-        self.pool = SimulationPool(trial.task, cpus, roles.get("simulation"), self.settings.task_options)
+        ensemble = self._ensemble(self.settings)
+        self.pool = SimulationPool(
+            trial.task, cpus, roles.get("simulation"), self.settings.task_options, ensemble, trial.seed
+        )
         self.planner = CEMPlanner(self.settings.planner, self.task.action_dim, seed=trial.seed)
         self.episode: MpcEpisode | None = None
         self.episode_index = 0
@@ -196,11 +255,16 @@ class MpcProgram(Program):
         if result.success is not None:
             metrics["success"] = float(result.success)
             metrics["goal_steps"] = float(result.goal_steps)
+        metrics |= {f"cost/{name}": value for name, value in result.components.items()}
+        trajectory = episode.trajectory()
+        task_metrics = self.task.episode_metrics(trajectory.observations)
+        metrics |= task_metrics
         self.finished.append(
             {
                 "episode_return": result.episode_return,
                 "success": float(result.success) if result.success is not None else math.nan,
                 "planning_seconds": float(result.planning_seconds.mean()),
+                **task_metrics,
             }
         )
         name = f"episodes/episode_{self.episode_index:03d}"
@@ -209,9 +273,7 @@ class MpcProgram(Program):
         title += f" (return {result.episode_return:.1f})"
         figure = plots.episode_png(title, result.rewards, result.planning_seconds)
         data = io.BytesIO()
-        np.savez_compressed(
-            data, **{k: v for k, v in episode.trajectory().to_tree().items() if isinstance(v, np.ndarray)}
-        )
+        np.savez_compressed(data, **{k: v for k, v in trajectory.to_tree().items() if isinstance(v, np.ndarray)})
         return metrics, [Artifact(f"{name}.png", figure), Artifact(f"{name}.npz", data.getvalue())]
 
     def _summary(self) -> dict[str, float]:
@@ -222,13 +284,15 @@ class MpcProgram(Program):
         successes = [e["success"] for e in self.finished if not math.isnan(e["success"])]
         if successes:
             summary["success_rate"] = float(np.mean(successes))
+        # The task's own figures (e.g. box_drops: mean_box_drops is the drop rate).
+        for key in sorted(self.finished[0].keys() - {"episode_return", "success", "planning_seconds"}):
+            summary[f"mean_{key}"] = float(np.mean([e[key] for e in self.finished]))
         return summary
 
     # ------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
-        finished = {
-            key: np.array([e[key] for e in self.finished]) for key in ("episode_return", "success", "planning_seconds")
-        }
+        keys = self.finished[0] if self.finished else ("episode_return", "success", "planning_seconds")
+        finished = {key: np.array([e[key] for e in self.finished]) for key in keys}
         state: dict[str, Any] = {"episode_index": self.episode_index, "finished": finished}
         if self.episode is not None and not self.episode.done:
             # Mid-episode: the next round continues this episode where it stopped.

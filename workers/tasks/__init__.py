@@ -19,6 +19,7 @@ from workers.tasks.goal_tasks import GOAL_TASKS, GoalTask
 from workers.tasks.locomotion import HalfCheetahRunning, HumanoidStandup
 from workers.tasks.model_based import ModelBasedTask
 from workers.tasks.noisy import NoisyHalfCheetah
+from workers.tasks.noisy_fetch import NoisyFetchPickPlace
 from workers.tasks.point_reach import PointReach
 
 TASKS: dict[str, type[GroundTruthTask] | type[ModelBasedTask] | type[GoalTask]] = {
@@ -33,6 +34,7 @@ TASKS: dict[str, type[GroundTruthTask] | type[ModelBasedTask] | type[GoalTask]] 
         PointReach,
         BridgeMaze,
         NoisyHalfCheetah,
+        NoisyFetchPickPlace,
     )
 } | dict(GOAL_TASKS)
 

@@ -244,6 +244,15 @@ class GroundTruthTask(ABC):
     batch_observations: ClassVar[bool] = False
     """Whether :meth:`observations` computes the observations of simulated batches in numpy (else callers
     replay each step's last physics substep in a real environment: workers/policy/observations.py)."""
+    observation_dim: ClassVar[int | None] = None
+    """Length of :meth:`observe`'s vector where it is known without an environment (settings validate
+    observation dimensions against it), else None."""
+    noise_dim: ClassVar[int] = 0
+    """Standard-normal draws per environment step that the task's noise process takes (:meth:`noisy_actions`);
+    0: the dynamics are deterministic."""
+    uncertainty_dims: ClassVar[tuple[int, ...] | None] = None
+    """Observation dimensions whose spread over noisy particles is the aleatoric uncertainty by default
+    (workers/dynamics/ground_truth.py); None: all."""
 
     def __init__(self, **options: Any):
         self.options = self.Options(**options)
@@ -433,6 +442,20 @@ class GroundTruthTask(ABC):
     def episode_success(self, goal_achieved: list[bool]) -> bool | None:
         """Success of a whole episode from its per-step goal flags."""
         return None
+
+    def episode_metrics(self, observations: np.ndarray) -> dict[str, float]:
+        """The task's own figures of a finished episode from its (T + 1, obs) observations (e.g. box drops)."""
+        return {}
+
+    # ------------------------------------------------------------ noise
+    def noisy_actions(self, actions_t: np.ndarray, frames: np.ndarray, draws_t: np.ndarray) -> np.ndarray:
+        """The actions a step applies under the task's noise process (tasks with :attr:`noise_dim` > 0).
+
+        ``actions_t`` (N, d) chosen actions; ``frames`` (N, nframes) stale frames at the start of the step;
+        ``draws_t`` (N, noise_dim) standard-normal draws. The real environment and the planner's simulators
+        call this same function, each with draws of its own.
+        """
+        raise NotImplementedError(f"{self.name} has deterministic dynamics")
 
     # -------------------------------------------------------- real steps
     def step_env(self, env: gym.Env, action: np.ndarray) -> StepOutcome:
