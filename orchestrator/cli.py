@@ -198,17 +198,18 @@ def _missing_sqlite(uri: str) -> bool:
 
 
 def _existing_store(uri: str | None):
-    """A Tracker on the store if it exists already (plans, reports and status never create one)."""
+    """(resolved URI, a Tracker on the store or None if it does not exist yet): plans, reports and status never
+    create one."""
     from orchestrator.tracking import Tracker, resolve_tracking_uri
 
     uri = resolve_tracking_uri(uri)
-    return None if _missing_sqlite(uri) else Tracker(uri)
+    return uri, None if _missing_sqlite(uri) else Tracker(uri)
 
 
 def _print_plan(loaded, args) -> None:
     from orchestrator import plan
 
-    tracker = _existing_store(args.tracking_uri)
+    _, tracker = _existing_store(args.tracking_uri)
     finished = plan.finished_keys(loaded, tracker)
     print(f"{loaded.path}: valid, {len(loaded.trials)} trial(s)")
     for trial in loaded.trials:
@@ -305,13 +306,10 @@ def _sweep_name(argument: str):
 
 
 def cmd_status(args) -> int:
-    from orchestrator.tracking import resolve_tracking_uri
-
-    tracker = _existing_store(args.tracking_uri)
+    uri, tracker = _existing_store(args.tracking_uri)
     if not args.sweep:
         sweeps = tracker.sweeps() if tracker else []
         if not sweeps:
-            uri = tracker.uri if tracker else resolve_tracking_uri(args.tracking_uri)
             print(f"no sweeps in {uri}; start one with: icemlab run sweeps/quickstart.yaml")
             return 0
         for sweep in sweeps:
@@ -325,7 +323,7 @@ def cmd_status(args) -> int:
     name, experiment, _ = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name) if tracker else None
     if parent is None:
-        print(f"sweep {name!r} has not run in {resolve_tracking_uri(args.tracking_uri)}")
+        print(f"sweep {name!r} has not run in {uri}")
         return 1
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}")
     for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
@@ -362,13 +360,12 @@ def _recorded_metric(tracker, run_id: str) -> tuple[str, str] | None:
 
 
 def cmd_report(args) -> int:
-    from orchestrator.tracking import FINISHED, resolve_tracking_uri
+    from orchestrator.tracking import FINISHED
 
-    tracker = _existing_store(args.tracking_uri)
+    uri, tracker = _existing_store(args.tracking_uri)
     name, experiment, loaded = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name) if tracker else None
     if parent is None:
-        uri = resolve_tracking_uri(args.tracking_uri)
         print(f"sweep {name!r} has not run in {uri}; run it with: icemlab run SWEEP.yaml", file=sys.stderr)
         return 1
     # Imported only when there is something to report: the methods bring torch and every task.
