@@ -276,6 +276,41 @@ def test_triangular_labels_and_mask_on_hand_built_episodes():
     assert not mask.any()
 
 
+def test_triangular_targets_are_clipped_into_the_cap():
+    first_leg, second_leg = np.array([-30.0, 20.0, 70.0, 400.0]), np.array([10.0, 30.0, 60.0, 500.0])
+    counts = np.zeros(4)
+    uncapped, _ = triangular_targets(first_leg, second_leg, counts, counts + 1)
+    assert uncapped.tolist() == [-20.0, 50.0, 130.0, 900.0]
+    capped, mask = triangular_targets(first_leg, second_leg, counts, counts + 1, cap=100.0)
+    assert capped.tolist() == [0.0, 50.0, 100.0, 100.0] and mask.all()
+
+
+def test_trainer_applies_the_triangular_cap():
+    """The trainer's triangular phase fits targets clipped at the configured cap (eq. 31b with a bound)."""
+    horizon = 8
+    episodes = marked_episodes(2, horizon)
+    # Each episode's desired goal is where the other one ended: s_i from one, s_j from the other pass the mask.
+    episodes.goals[:] = episodes.achieved_goals[::-1, -1]
+    settings = DistanceSettings(
+        hidden=(16,), batch_size=64, temporal_updates_per_episode=0, triangular_updates_per_episode=1,
+        triangular_target_cap=3.0,
+    )
+    trainer = DistanceTrainer(settings, CountSettings(single_key_dim=8, pair_key_dim=8, sigma=0.01), 4, 2, 2, horizon)
+    trainer.add_episodes(episodes)
+    fitted: list[np.ndarray] = []
+    fit = trainer.model.fit
+
+    def recording_fit(observations, actions, goals, targets, mask=None):
+        fitted.append(np.asarray(targets)[np.asarray(mask, dtype=bool)])
+        return fit(observations, actions, goals, targets, mask)
+
+    trainer.model.fit = recording_fit  # type: ignore[method-assign]
+    with torch.no_grad():  # every estimate far above the cap: 1000 steps
+        trainer.model.target[-1].bias.fill_(1000.0)
+    trainer.triangular_step()
+    assert fitted and fitted[0].size > 0 and (fitted[0] == 3.0).all()
+
+
 def test_merge_and_relax_rates_count_over_the_whole_batch():
     predictions = np.array([1.0, 5.0, 3.0, 2.0, 7.0])
     targets = np.array([4.0, 2.0, 3.0, 9.0, 8.0])

@@ -73,6 +73,11 @@ class DistanceSettings(BaseModel):
     """Temporal-loss updates per collected episode (Table 20, "updates per episode")."""
     triangular_updates_per_episode: int = Field(100, ge=0)
     """Triangular-loss updates per collected episode (Alg. 4 runs both phases every iteration)."""
+    triangular_target_cap: float | None = Field(None, gt=0)
+    """Clip the triangular target d_old(s_i, a_i, ag(s_j)) + d_old(s_j, a_j, g) into [0, cap] steps; None: the sum
+    as eq. 31b writes it. Each cathetus is a bootstrapped estimate, the first one usually of a pair no episode
+    joined, so the sum can feed on its own overestimates; a cap at the episode length plays Floyd-Warshall's
+    "infinity" (README, "Bounded triangular targets")."""
     uncertainty_scale: float = Field(400.0, ge=0)
     """C of U = C / (1 + N(s, a))^M (eq. 29, App. E.1.2)."""
     uncertainty_exponent: float = Field(2.0, gt=0)

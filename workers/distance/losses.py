@@ -131,17 +131,25 @@ def sample_triangular(
 
 
 def triangular_targets(
-    first_leg: np.ndarray, second_leg: np.ndarray, counts_to_goal: np.ndarray, via_counts_to_goal: np.ndarray
+    first_leg: np.ndarray,
+    second_leg: np.ndarray,
+    counts_to_goal: np.ndarray,
+    via_counts_to_goal: np.ndarray,
+    cap: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Targets d_old(s_i, a_i, ag(s_j)) + d_old(s_j, a_j, g) and the mask of samples that train (eq. 31b).
 
     A sample trains only when g was never reached after (s_i, a_i) but was
     reached after (s_j, a_j): N(s_i, a_i, g) = 0 and N(s_j, a_j, g) > 0
     (Alg. 4 line 15; the sets mu(g) and its complement of eq. 31b). Every other
-    sample is left out ("do nothing").
+    sample is left out ("do nothing"). With a ``cap`` the sums are clipped into
+    [0, cap] (``DistanceSettings.triangular_target_cap``).
     """
     mask = (np.asarray(counts_to_goal) == 0) & (np.asarray(via_counts_to_goal) > 0)
-    return np.asarray(first_leg, dtype=np.float64) + np.asarray(second_leg, dtype=np.float64), mask
+    targets = np.asarray(first_leg, dtype=np.float64) + np.asarray(second_leg, dtype=np.float64)
+    if cap is not None:
+        targets = np.clip(targets, 0.0, cap)
+    return targets, mask
 
 
 def merge_and_relax_rates(predictions: np.ndarray, targets: np.ndarray, mask: np.ndarray) -> tuple[float, float]:

@@ -142,7 +142,9 @@ class DistanceTrainer:
         second_leg = self.model.predict_target(batch.via_observations, batch.via_actions, batch.goals)
         to_goal = pair.query(batch.observations, batch.actions, batch.goals)
         via_to_goal = pair.query(batch.via_observations, batch.via_actions, batch.goals)
-        targets, mask = triangular_targets(first_leg, second_leg, to_goal, via_to_goal)
+        targets, mask = triangular_targets(
+            first_leg, second_leg, to_goal, via_to_goal, self.settings.triangular_target_cap
+        )
         loss, predictions = self.model.fit(batch.observations, batch.actions, batch.goals, targets, mask)
         merge, relax = merge_and_relax_rates(predictions, targets, mask)
         return {
