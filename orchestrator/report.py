@@ -360,8 +360,12 @@ Histories = dict[str, dict[str, list[tuple[int, float]]]]
 
 
 def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str], step_label: str = "step"):
-    """Each curve metric against its step: one line per configuration, mean over seeds with +- sem shading."""
-    metrics = list(metrics)
+    """Each curve metric against its step: one line per configuration, mean over seeds with +- sem shading.
+
+    Metrics no trial logged (coverage on a task without a coverage grid) get no panel.
+    """
+    logged = {metric for runs in histories.values() for metric, points in runs.items() if points}
+    metrics = [m for m in metrics if m in logged] or list(metrics)[:1]
     figure, axes = plt.subplots(1, len(metrics), figsize=(6.5 * len(metrics), 4), squeeze=False)
     for axis, metric in zip(axes[0], metrics):
         for group in summary.groups:

@@ -4,8 +4,8 @@
   as a reference line (Fig. 19a), mean +- sem over the seeds of each configuration.
 * :func:`drop_rate_figure`: the rate of failures (box drops, else falls) of each frozen row against a swept
   task option such as the noise strength (Fig. 19b).
-* :func:`coverage_figure`: final state coverage of each configuration (the end point of Fig. 37a);
-  :func:`coverage_curves_figure` draws whole coverage-over-iterations curves from metric histories.
+* :func:`coverage_figure`: final state coverage of each configuration (the end point of Fig. 37a); the whole
+  coverage-over-iterations curves are among the program's report curves (``MbrlProgram.curves``).
 
 The frozen rows come from the trials' summary metrics ``frozen/<row>/<key>`` (workers/methods/mbrl.py):
 ``pets`` and ``razer_wA_<w>`` rows with ``success_rate``, ``mean_return``, ``falls_rate``,
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -187,31 +187,6 @@ def coverage_figure(summary: Any):
     axis.invert_yaxis()
     axis.set_xlabel("state coverage after the last iteration (fraction of 50 x 50 cells)")
     axis.grid(alpha=0.3, axis="x")
-    figure.tight_layout()
-    return figure
-
-
-def coverage_curves_figure(curves: Mapping[str, Sequence[Sequence[tuple[int, float]]]]):
-    """Fig. 37a: coverage against iteration, mean +- std over the runs of each label.
-
-    Args:
-        curves: label -> one (iteration, coverage) history per run (e.g. Tracker.metric_history(run, "coverage")).
-    """
-    figure, axis = plt.subplots(figsize=(6, 4))
-    for label, runs in curves.items():
-        by_step: dict[int, list[float]] = defaultdict(list)
-        for run in runs:
-            for step, value in run:
-                by_step[int(step)].append(float(value))
-        steps = sorted(by_step)
-        mean = np.array([np.mean(by_step[s]) for s in steps])
-        std = np.array([np.std(by_step[s]) for s in steps])
-        line = axis.plot(steps, mean, label=f"{label} (n={len(runs)})")
-        axis.fill_between(steps, mean - std, mean + std, color=line[0].get_color(), alpha=0.2)
-    axis.set_xlabel("MBRL iteration (0: random episodes)")
-    axis.set_ylabel("state coverage")
-    axis.grid(alpha=0.3)
-    axis.legend(fontsize=8)
     figure.tight_layout()
     return figure
 

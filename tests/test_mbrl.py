@@ -430,8 +430,6 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
     assert labels == ["pets", "razer_wA_0.1", "razer_wA_1"]
     written = report_mbrl.write_files(summary, tmp_path)
     assert [p.name for p in written] == ["frozen_success.png", "failure_rate.png", "coverage.png"]
-    curves = report_mbrl.coverage_curves_figure({"pets": [[(0, 0.01), (1, 0.02)]], "razer": [[(0, 0.01), (1, 0.05)]]})
-    assert len(curves.axes[0].lines) == 2
 
 
 # ---------------------------------------------------------------- sweeps

@@ -179,3 +179,22 @@ def test_curves_are_drawn_against_what_the_methods_step_counts():
     figure = report.curves_figure(summary, histories, ["rollouts/eval_success"], NapspProgram.curve_step)
     assert figure.axes[0].get_xlabel().startswith("collected episodes")
     assert figure.axes[0].lines[0].get_xdata().tolist() == [2, 4]
+
+
+def test_mbrl_report_curves_show_coverage_where_the_task_logs_it():
+    """Fig. 37a (coverage against iteration) is a report curve of mbrl; a task without coverage gets no panel."""
+    from orchestrator.tracking import TrialRun
+    from workers.methods.mbrl import MbrlProgram
+
+    params = {"method": "mbrl", "task": "bridge_maze", "seed": "0"}
+    run = TrialRun("id", "key", FINISHED, "name", params, {}, {"final_coverage": 0.02})
+    summary = report.summarize([run], "final_coverage", references=[])
+    logged = {"episode_return": [(0, 1.0), (1, 3.0)], "coverage": [(0, 0.01), (1, 0.02)]}
+
+    def panels(histories):
+        figure = report.curves_figure(summary, histories, MbrlProgram.curves, MbrlProgram.curve_step)
+        return [axis.get_ylabel() for axis in figure.axes]
+
+    assert panels({"id": logged}) == ["episode_return", "coverage"]
+    assert panels({"id": {"episode_return": logged["episode_return"]}}) == ["episode_return"]
+

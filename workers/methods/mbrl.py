@@ -342,6 +342,9 @@ class MbrlProgram(Program):
     }
     label_paths = {"preset": ("model.preset",)}
     role_names = ("trainer", "planner")
+    curves = ("episode_return", "success", "coverage")
+    curve_step = "MBRL iteration (0: random episodes)"
+    """Training rounds log at step = iteration; coverage against it is Fig. 37a."""
 
     settings: MbrlSettings
 
