@@ -201,9 +201,35 @@ def test_method_end_to_end_in_process():
         "maze/iteration_00002_coverage.png",
     ]
     assert all(a.data.startswith(b"\x89PNG") for r in reports for a in r.artifacts)
+    ranks = {k: v for k, v in reports[1].metrics.items() if k.startswith("maze/")}
+    assert set(ranks) == {f"maze/{n}_rank_{r}" for n in ("d", "q") for r in ("geodesic", "euclidean")}
+    assert all(-1 <= v <= 1 for v in ranks.values()) and not any(k.startswith("maze/") for k in reports[0].metrics)
     summary = reports[-1].summary
     assert summary["total_episodes"] == 3 and summary["eval_success"] == pytest.approx(np.mean(success))
     assert set(NapspProgram.metrics.values()) <= set(summary)
+
+
+def test_maze_rank_metrics_tell_a_wall_aware_distance_from_the_straight_line():
+    from workers.methods.napsp import MazeViews, goal_room_center
+    from workers.tasks.goal_tasks import PointMaze
+
+    maze = PointMaze()
+    field = maze.maze_distance
+    goal = goal_room_center(maze.maze_map)
+    centers = field.cell_centers()
+    geodesic = field.distance_field(goal)
+    euclidean = np.linalg.norm(centers - goal, axis=-1)
+
+    def views(d):
+        return MazeViews(goal, field.free, geodesic, euclidean, d, 2 * d)
+
+    aware = views(3 * geodesic + 1).rank_metrics()
+    assert aware["maze/d_rank_geodesic"] == pytest.approx(1.0) and aware["maze/q_rank_geodesic"] == pytest.approx(1.0)
+    assert aware["maze/d_rank_euclidean"] < 0.7  # behind the walls the two orders differ
+    blind = views(euclidean).rank_metrics()
+    assert blind["maze/d_rank_euclidean"] == pytest.approx(1.0) and blind["maze/d_rank_geodesic"] < 0.7
+    sparse = MazeViews(goal, field.free, geodesic, euclidean, None, euclidean).rank_metrics()
+    assert set(sparse) == {"maze/q_rank_geodesic", "maze/q_rank_euclidean"}
 
 
 def test_sparse_her_has_no_distance_role():

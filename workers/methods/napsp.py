@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import numpy as np
 from pydantic import ConfigDict, Field, ValidationError, create_model
@@ -280,8 +280,8 @@ class NapspProgram(Program):
                 # A metric missing in some iteration (e.g. the first pipelined one) is NaN there, kept aligned.
                 series.setdefault(key, [math.nan] * position).append(metrics.get(key, math.nan))
         done = self.iteration >= settings.iterations
-        artifacts = self._artifacts(index, done)
-        round_metrics = self._curve_points()
+        artifacts, maze_metrics = self._artifacts(index, done)
+        round_metrics = self._curve_points() | maze_metrics
         summary = self._summary() if done else {}
         series = {key: values for key, values in series.items() if not all(math.isnan(v) for v in values)}
         return RoundReport(
@@ -392,44 +392,59 @@ class NapspProgram(Program):
         distance = self.maze.maze_distance
         return (-distance.x_center, distance.x_center, -distance.y_center, distance.y_center)
 
-    def _artifacts(self, index: int, done: bool) -> list[Artifact]:
+    def _artifacts(self, index: int, done: bool) -> tuple[list[Artifact], dict[str, float]]:
+        """Every ``plot_every`` rounds on Point Maze: the Fig. 23 heat maps, the Fig. 27 coverage map and how
+        well d and -Q order the maze's cells by their true distance to the goal (Spearman rank correlations)."""
         every = self.settings.plot_every
         if self.maze is None or not (done or (every and (index + 1) % every == 0)):
-            return []
+            return [], {}
         from workers import plots
 
+        views = self._maze_views()
         name = f"maze/iteration_{self.iteration:05d}"
-        return [
-            Artifact(f"{name}_heatmaps.png", plots.to_png(self._heatmaps())),
+        artifacts = [
+            Artifact(f"{name}_heatmaps.png", plots.to_png(self._heatmaps(views))),
             Artifact(f"{name}_coverage.png", plots.to_png(self._coverage_figure())),
         ]
+        return artifacts, views.rank_metrics()
 
-    def _heatmaps(self):
-        """Fig. 23: true shortest-path distance, d(s, pi(s), g) and -Q(s, pi(s), g) to a goal in the goal room."""
-        import matplotlib.pyplot as plt
-
-        maze = self.maze
-        distance = maze.maze_distance
-        goal = goal_room_center(maze.maze_map)
+    def _maze_views(self) -> MazeViews:
+        """True shortest-path and straight-line distances, d(s, pi(s), g) and -Q(s, pi(s), g) on a grid of
+        resting states, to a goal at the goal room's centre."""
+        distance = self.maze.maze_distance
+        goal = goal_room_center(self.maze.maze_map)
         centers = distance.cell_centers()[::HEATMAP_STRIDE, ::HEATMAP_STRIDE]
-        free = distance.free[::HEATMAP_STRIDE, ::HEATMAP_STRIDE]
-        shape = free.shape
+        shape = centers.shape[:2]
         points = centers.reshape(-1, 2)
         observations = np.concatenate([points, np.zeros_like(points)], axis=1)  # at rest
         goals = np.broadcast_to(goal, points.shape).copy()
-        truth = distance.distance_field(goal)[::HEATMAP_STRIDE, ::HEATMAP_STRIDE]
-        panels = [("shortest path (world units)", truth)]
         actions = self.learner.submit(0, "actions", observations, goals).result()
+        learned = None
         if self.distance is not None:
-            d = self.distance.submit(0, "distances", observations, actions, goals).result()
-            panels.append((f"d(s, pi(s), g), weights v{self.weights_version}", d.reshape(shape)))
+            learned = self.distance.submit(0, "distances", observations, actions, goals).result().reshape(shape)
         q = self.learner.submit(0, "values", observations, goals).result()
-        panels.append(("-Q(s, pi(s), g)", -q.reshape(shape)))
+        return MazeViews(
+            goal=goal,
+            free=distance.free[::HEATMAP_STRIDE, ::HEATMAP_STRIDE],
+            geodesic=distance.distance_field(goal)[::HEATMAP_STRIDE, ::HEATMAP_STRIDE],
+            euclidean=np.linalg.norm(centers - goal, axis=-1),
+            distance=learned,
+            negative_q=-q.reshape(shape),
+        )
+
+    def _heatmaps(self, views: MazeViews):
+        """Fig. 23: true shortest-path distance, d(s, pi(s), g) and -Q(s, pi(s), g) to a goal in the goal room."""
+        import matplotlib.pyplot as plt
+
+        panels = [("shortest path (world units)", views.geodesic)]
+        if views.distance is not None:
+            panels.append((f"d(s, pi(s), g), weights v{self.weights_version}", views.distance))
+        panels.append(("-Q(s, pi(s), g)", views.negative_q))
         figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.8))
         for axis, (title, values) in zip(np.atleast_1d(axes), panels):
-            shown = np.where(free & np.isfinite(truth), values, np.nan)
+            shown = np.where(views.reachable, values, np.nan)
             image = axis.imshow(shown, extent=self._extent(), origin="upper", cmap="viridis")
-            axis.plot(*goal, marker="*", color="red", markersize=12)
+            axis.plot(*views.goal, marker="*", color="red", markersize=12)
             axis.set_title(title, fontsize=9)
             figure.colorbar(image, ax=axis, fraction=0.046)
         figure.suptitle(f"{self.trial.task} {self.settings.reward} s{self.trial.seed}: iteration {self.iteration}")
@@ -490,6 +505,49 @@ class NapspProgram(Program):
 # ---------------------------------------------------------------- helpers
 COVERAGE_BINS = 70
 HEATMAP_STRIDE = 2
+DETOUR = 1.25
+"""Cells whose shortest path to the goal exceeds the straight line by this factor count as behind a wall."""
+
+
+class MazeViews(NamedTuple):
+    """Distances to one goal on a grid of resting states (the Fig. 23 panels), NaN-free where ``reachable``."""
+
+    goal: np.ndarray
+    free: np.ndarray
+    """Cells the ball can occupy."""
+    geodesic: np.ndarray
+    """True shortest-path distance (world units)."""
+    euclidean: np.ndarray
+    """Straight-line distance (world units), the heuristic the walls make misleading (section 6.6)."""
+    distance: np.ndarray | None
+    """d(s, pi(s), g); None without a distance role (sparse_her)."""
+    negative_q: np.ndarray
+    """-Q(s, pi(s), g)."""
+
+    @property
+    def reachable(self) -> np.ndarray:
+        return self.free & np.isfinite(self.geodesic)
+
+    def rank_metrics(self) -> dict[str, float]:
+        """Spearman rank correlation of d and of -Q with the geodesic and with the Euclidean distance.
+
+        Over the cells behind a wall, where the shortest path is more than
+        :data:`DETOUR` times the straight line: over the whole four-room map
+        the two orders agree (rank correlation 0.98), over these 10 % of cells
+        they do not (0.59). A distance that learned the walls orders them like
+        the geodesic (``maze/d_rank_geodesic`` near 1, above
+        ``maze/d_rank_euclidean``); one that ignores them, like the straight line.
+        """
+        from scipy.stats import spearmanr
+
+        cells = self.reachable & (self.geodesic > DETOUR * self.euclidean)
+        metrics = {}
+        for name, values in (("d", self.distance), ("q", self.negative_q)):
+            if values is None:
+                continue
+            for reference, truth in (("geodesic", self.geodesic), ("euclidean", self.euclidean)):
+                metrics[f"maze/{name}_rank_{reference}"] = float(spearmanr(values[cells], truth[cells])[0])
+        return metrics
 
 
 def goal_room_center(maze_map) -> np.ndarray:
