@@ -292,7 +292,10 @@ def test_trainer_applies_the_triangular_cap():
     # Each episode's desired goal is where the other one ended: s_i from one, s_j from the other pass the mask.
     episodes.goals[:] = episodes.achieved_goals[::-1, -1]
     settings = DistanceSettings(
-        hidden=(16,), batch_size=64, temporal_updates_per_episode=0, triangular_updates_per_episode=1,
+        hidden=(16,),
+        batch_size=64,
+        temporal_updates_per_episode=0,
+        triangular_updates_per_episode=1,
         triangular_target_cap=3.0,
     )
     trainer = DistanceTrainer(settings, CountSettings(single_key_dim=8, pair_key_dim=8, sigma=0.01), 4, 2, 2, horizon)

@@ -197,4 +197,3 @@ def test_mbrl_report_curves_show_coverage_where_the_task_logs_it():
 
     assert panels({"id": logged}) == ["episode_return", "coverage"]
     assert panels({"id": {"episode_return": logged["episode_return"]}}) == ["episode_return"]
-
