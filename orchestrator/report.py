@@ -364,8 +364,9 @@ def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str]
 
     Metrics no trial logged (coverage on a task without a coverage grid) get no panel.
     """
+    metrics = list(metrics)
     logged = {metric for runs in histories.values() for metric, points in runs.items() if points}
-    metrics = [m for m in metrics if m in logged] or list(metrics)[:1]
+    metrics = [m for m in metrics if m in logged] or metrics[:1]
     figure, axes = plt.subplots(1, len(metrics), figsize=(6.5 * len(metrics), 4), squeeze=False)
     for axis, metric in zip(axes[0], metrics):
         for group in summary.groups:
