@@ -201,14 +201,15 @@ def test_ts1_balance_when_particles_are_not_a_multiple():
     assert (counts == 2).float().mean(dim=(0, 1)).tolist() == pytest.approx([0.4] * 5, abs=0.06)
 
 
-def test_zero_variance_is_a_deterministic_rollout_of_the_assigned_members():
+@pytest.mark.parametrize("particles", [5, 7, 10])  # one row per member and sequence, unused slots, two rows
+def test_zero_variance_is_a_deterministic_rollout_of_the_assigned_members(particles):
     model = make_deterministic(tiny_model())
     generator = torch.Generator().manual_seed(3)
     start, actions = torch.randn(3, generator=generator), torch.rand(3, 4, 2, generator=generator) * 2 - 1
-    prop = petsus_propagate(model, start, actions, 5, "per_member", generator)
+    prop = petsus_propagate(model, start, actions, particles, "per_member", generator)
     net = model.net
     for n in range(3):
-        for p in range(5):
+        for p in range(particles):
             s = start.clone()
             for t in range(4):
                 k = prop.members[n, p, t]

@@ -59,6 +59,13 @@ class Propagation(NamedTuple):
     """(N, h, d) Var_E of eq. 24 for steps 1 ... h; None without mean propagation."""
 
 
+def population_variance(x: torch.Tensor) -> torch.Tensor:
+    """Variance over the first dimension, dividing by its size; ``Tensor.var`` takes a slow path on CPU for
+    this reduction (about 10x slower on (K, N, d) member predictions)."""
+    centred = x - x.mean(dim=0, keepdim=True)
+    return centred.square().mean(dim=0)
+
+
 def petsus_propagate(
     model: DynamicsEnsemble,
     start: torch.Tensor,
@@ -85,7 +92,6 @@ def petsus_propagate(
     slots_total = per * k
     start = start.to(torch.float32).reshape(d)
     actions = actions.to(torch.float32)
-    state = start.expand(n, particles, d).clone()
     rows = n * per  # particle rows per member
     if mean_propagation == "per_member":
         mean_state = start.expand(k, n, d).clone()
@@ -96,40 +102,47 @@ def petsus_propagate(
     else:
         raise ValueError(f"unknown mean_propagation {mean_propagation!r}")
 
-    states, members, var_a, means, var_e = [], [], [], [], []
+    # All random draws and index maps of the rollout at once: the loop below is a few dozen tensor operations
+    # per step, and for small networks their count, not the matmuls, bounds the throughput.
+    # TS1: particle of random rank r takes row r // K of member sigma(r % K), sigma a random permutation
+    # of the members: loads are balanced and the surplus of P % K lands on random members.
+    rank = torch.rand(horizon, n, particles, generator=generator).argsort(dim=-1)
+    sigma = torch.rand(horizon, n, k, generator=generator).argsort(dim=-1)
+    slots = (rank // k) * k + sigma.gather(2, rank % k)  # (h, N, P): slot s -> member s % K, row s // K
+    noise = torch.randn(horizon, k, rows, d, generator=generator)
+    # Particle states live in a flat (N P + 1, d) table whose last row stays 0 (the input of unused slots).
+    # gather_rows[t] reads the member batch (K rows, member-major) from the table; scatter_rows[t] finds each
+    # particle's prediction in the flattened batch.
+    sequence = torch.arange(n).view(1, n, 1)
+    owner = torch.full((horizon, n, slots_total), particles).scatter_(
+        2, slots, torch.arange(particles).expand(horizon, n, particles)
+    )
+    gather_rows = torch.where(owner < particles, sequence * particles + owner, n * particles)
+    gather_rows = gather_rows.view(horizon, n, per, k).permute(0, 3, 1, 2).reshape(horizon, k * rows)
+    scatter_rows = ((slots % k) * rows + sequence * per + slots // k).view(horizon, n * particles)
+    table = torch.zeros(n * particles + 1, d)
+    table[:-1] = start
+    step_actions = actions.transpose(0, 1)  # (h, N, d_a)
+    particle_actions = step_actions.unsqueeze(2).expand(-1, -1, per, -1).reshape(horizon, 1, rows, -1)
+
+    states, var_a, means, var_e = [], [], [], []
     for t in range(horizon):
-        action = actions[:, t]  # (N, d_a)
-        # TS1: particle of random rank r takes row r // K of member sigma(r % K), sigma a random
-        # permutation of the members: loads are balanced and the surplus of P % K lands on random members.
-        rank = torch.rand(n, particles, generator=generator).argsort(dim=1)
-        sigma = torch.rand(n, k, generator=generator).argsort(dim=1)
-        slots = (rank // k) * k + sigma.gather(1, rank % k)  # slot s -> member s % K, row s // K
-        index = slots.unsqueeze(-1).expand(-1, -1, d)
-        grid = state.new_zeros(n, slots_total, d).scatter_(1, index, state)  # unused slots stay 0 (discarded)
-        particle_in = grid.view(n, per, k, d).permute(2, 0, 1, 3).reshape(k, rows, d)
-        particle_act = action.unsqueeze(1).expand(n, per, -1).reshape(1, rows, -1).expand(k, -1, -1)
-        inputs = torch.cat([particle_in, particle_act], dim=-1)
+        particle_in = table.index_select(0, gather_rows[t]).view(k, rows, d)
+        state_in, action_in = particle_in, particle_actions[t].expand(k, -1, -1)
         if mean_state is not None:
-            mean_in = torch.cat([mean_state.expand(k, n, d), action.expand(k, n, -1)], dim=-1)
-            inputs = torch.cat([inputs, mean_in], dim=1)
-        mu, logvar = model.predict(inputs)  # one batched evaluation for particles and means
+            state_in = torch.cat([particle_in, mean_state.expand(k, n, d)], dim=1)
+            action_in = torch.cat([action_in, step_actions[t].expand(k, n, -1)], dim=1)
+        mu, logvar = model.predict(torch.cat([state_in, action_in], dim=-1))  # particles and means in one batch
 
         var = logvar[:, :rows].exp()
-        noise = torch.randn(particle_in.shape, generator=generator)
-        sampled = model.clamp_states(particle_in + mu[:, :rows] + var.sqrt() * noise)
-
-        def to_particles(x: torch.Tensor, index: torch.Tensor = index) -> torch.Tensor:
-            """(K, N per, d) rows back to each sequence's particles (N, P, d)."""
-            return x.view(k, n, per, d).permute(1, 2, 0, 3).reshape(n, slots_total, d).gather(1, index)
-
-        state = to_particles(sampled)
-        states.append(state)
-        members.append(slots % k)
-        var_a.append(to_particles(var).mean(dim=1))
+        sampled = model.clamp_states(particle_in + mu[:, :rows] + var.sqrt() * noise[t])
+        torch.index_select(sampled.view(k * rows, d), 0, scatter_rows[t], out=table[:-1])
+        states.append(table[:-1].view(n, particles, d).clone())
+        var_a.append(var.view(k * rows, d).index_select(0, scatter_rows[t]).view(n, particles, d).mean(dim=1))
 
         if mean_state is not None:
             mean_mu, mean_var = mu[:, rows:], logvar[:, rows:].exp()  # (K, N, d)
-            var_e.append(mean_mu.var(dim=0, unbiased=False) + mean_var.var(dim=0, unbiased=False))
+            var_e.append(population_variance(mean_mu) + population_variance(mean_var))
             step = mean_mu if mean_propagation == "per_member" else mean_mu.mean(dim=0, keepdim=True)
             mean_state = model.clamp_states(mean_state + step)
             means.append(mean_state)
@@ -137,7 +150,7 @@ def petsus_propagate(
     return Propagation(
         start=start,
         particles=torch.stack(states, dim=2),
-        members=torch.stack(members, dim=2),
+        members=(slots % k).permute(1, 2, 0),
         var_aleatoric=torch.stack(var_a, dim=1),
         means=torch.stack(means, dim=2) if means else None,
         var_epistemic=torch.stack(var_e, dim=1) if var_e else None,
