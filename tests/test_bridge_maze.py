@@ -69,6 +69,27 @@ def test_goal_is_reachable_by_a_scripted_controller(route):
     assert np.abs(observations[:, 3]).min() > 0.98
 
 
+def test_on_solid_ground_the_cube_neither_bobs_nor_stalls():
+    """Random pushes on the start platform: height and vertical velocity stay still (no contact jitter for a
+    model to learn as noise, see bridge_maze.xml); full force reaches over 6 m/s and coasting stops in a second."""
+    task = BridgeMaze(episode_length=40)
+    rng = np.random.default_rng(0)
+    pushes = iter(rng.uniform(-0.6, 0.6, (40, 2)))
+    observations, _, _, _ = run(task, lambda obs: next(pushes))
+    assert np.all(on_walkway(observations[:, 0], observations[:, 1]))
+    assert np.abs(observations[:, 2] - 0.25).max() < 2e-3
+    assert observations[:, 9].std() < 5e-3
+    env = task.make_env()
+    obs, _ = env.reset(seed=0)
+    for _ in range(30):
+        obs, *_ = env.step(np.array([0.0, 1.0]))
+    top = obs[8]
+    for _ in range(20):
+        obs, *_ = env.step(np.zeros(2))
+    env.close()
+    assert top > 6.0 and abs(obs[8]) < 0.1 * top
+
+
 def test_a_fall_into_the_lava_ends_the_episode():
     task = BridgeMaze()
     observations, rewards, infos, terminated = run(task, waypoint_controller(INTO_LAVA))

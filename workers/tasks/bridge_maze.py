@@ -19,8 +19,10 @@ Chosen here, because the thesis gives none of it:
 * Falling: the cube loses the walkway once its centre of mass is over lava
   (the walkway is one plane whose contact is switched off; see the XML for
   why) and drops to the lava plane at z = -2. A fall is z < -1.5 (eq. 36).
-* Dynamics: forces of up to 20 N, friction 0.5, damping 2 on the free joint:
-  top speed about 7.5 m/s; env step 0.05 s (25 physics steps of 2 ms).
+* Dynamics: forces of up to 20 N, damping 3 on the free joint, no friction
+  between cube and walkway (the XML says why): top speed about 6.7 m/s, a
+  stop within about a second without force; env step 0.05 s (25 physics
+  steps of 2 ms).
 * Wind: redrawn every ``wind_period`` = 5 *environment* steps (0.25 s; at 2 ms
   physics steps, 5 physics steps would be a 10 ms flicker that averages out);
   the region test runs at every physics step. Default f_max = 30 N, which makes
