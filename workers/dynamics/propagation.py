@@ -111,9 +111,10 @@ def petsus_propagate(
     slots = (rank // k) * k + sigma.gather(2, rank % k)  # (h, N, P): slot s -> member s % K, row s // K
     noise = torch.randn(horizon, k, rows, d, generator=generator)
     # Particle states live in a flat (N P + 1, d) table whose last row stays 0 (the input of unused slots).
-    # gather_rows[t] reads the member batch (K rows, member-major) from the table; scatter_rows[t] finds each
-    # particle's prediction in the flattened batch.
+    # gather_rows[t] lists the table rows that make up the member batch at step t (K x N ceil(P/K) rows,
+    # member-major); scatter_rows[t] lists where each particle's prediction sits in that batch, flattened.
     sequence = torch.arange(n).view(1, n, 1)
+    # owner[t, i, s]: the particle of sequence i in slot s at step t (P: the slot is unused).
     owner = torch.full((horizon, n, slots_total), particles).scatter_(
         2, slots, torch.arange(particles).expand(horizon, n, particles)
     )
