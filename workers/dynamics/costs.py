@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from workers.dynamics.propagation import Propagation
+from workers.dynamics.propagation import Propagation, population_variance
 from workers.dynamics.settings import MeanPropagation, RazerSettings, SafetyBox, UncertaintyReduction  # noqa: F401
 
 TaskCost = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
@@ -90,7 +90,7 @@ def moment_matched_violation(particles: torch.Tensor, boxes: tuple[SafetyBox, ..
     safety term ideally we want to use the full distribution", D.2.4).
     """
     mean = particles.mean(dim=1)
-    std = particles.var(dim=1, unbiased=False).sqrt()
+    std = population_variance(particles, dim=1).sqrt()
     probabilities = [box_violation_probability(mean, std, box) for box in boxes]
     return torch.stack(probabilities).amax(dim=0)
 

@@ -59,11 +59,11 @@ class Propagation(NamedTuple):
     """(N, h, d) Var_E of eq. 24 for steps 1 ... h; None without mean propagation."""
 
 
-def population_variance(x: torch.Tensor) -> torch.Tensor:
-    """Variance over the first dimension, dividing by its size; ``Tensor.var`` takes a slow path on CPU for
-    this reduction (about 10x slower on (K, N, d) member predictions)."""
-    centred = x - x.mean(dim=0, keepdim=True)
-    return centred.square().mean(dim=0)
+def population_variance(x: torch.Tensor, dim: int = 0) -> torch.Tensor:
+    """Variance over ``dim``, dividing by its size; ``Tensor.var`` takes a slow path on CPU for this
+    reduction (about 10x slower on (K, N, d) member predictions)."""
+    centred = x - x.mean(dim=dim, keepdim=True)
+    return centred.square().mean(dim=dim)
 
 
 def petsus_propagate(
