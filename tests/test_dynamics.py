@@ -394,6 +394,28 @@ def test_throughput_measurement_runs():
     assert report.rows_per_model_step == 5 * (8 + 8)
 
 
+def test_throughput_measurement_alternates_and_keeps_each_sides_best(monkeypatch):
+    """Scripted readings, no timing: the rounds interleave dense and evaluator, and each side's best counts."""
+    import workers.dynamics.benchmark as benchmark
+
+    calls = []
+    dense_readings, evaluator_readings = iter([3.0, 5.0, 4.0]), iter([20.0, 10.0, 30.0])
+
+    def dense(*args, **kwargs):
+        calls.append("dense")
+        return next(dense_readings)
+
+    def evaluator(*args, **kwargs):
+        calls.append("evaluator")
+        return next(evaluator_readings)
+
+    monkeypatch.setattr(benchmark, "dense_matmul_flops_per_second", dense)
+    monkeypatch.setattr(benchmark, "ensemble_evaluator_particle_steps_per_second", evaluator)
+    report = measure_ensemble_throughput(EnsembleConfig.preset("small", hidden_size=16), 4, 2, rounds=3)
+    assert calls == ["dense", "evaluator"] * 3
+    assert report.dense_flops_per_second == 5.0 and report.particle_steps_per_second == 30.0
+
+
 def test_end_to_end_bridge_maze_model_plans_with_icem():
     """Random BridgeMaze data -> small ensemble -> RAZER evaluator -> one iCEM step (the service's path)."""
     from workers.planning import CEMPlanner, PlannerConfig
