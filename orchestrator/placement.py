@@ -4,7 +4,10 @@ A trial is a group: the ProgramRunner that hosts its program, and the workers
 of every role the program declared (workers/methods/base.py RoleSpec). The
 group is one Ray placement group with a bundle per actor, so it starts whole
 or waits whole; a trial never runs with part of its roles missing, and CPUs
-are counted across concurrent trials by Ray itself.
+are counted across concurrent trials by Ray itself. An actor that reserves no
+CPUs (a program whose runner only coordinates, a worker that computes only
+while the others of its trial wait) gets no bundle of its own: Ray refuses
+empty bundles, so it runs in the group's first bundle with num_cpus=0.
 
 Role workers reach the program as :class:`RayRoleGroup` objects: the plain
 RoleGroup interface of workers/, implemented with actor calls and the object
@@ -19,7 +22,7 @@ the trial resumes from its last checkpoint in a new group.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import ray
 from ray.util.placement_group import placement_group, remove_placement_group
@@ -88,6 +91,40 @@ class RayRoleGroup:
         return ray.put(value)
 
 
+class BundleLayout(NamedTuple):
+    """The bundles of a trial's placement group and the bundle each actor runs in."""
+
+    bundles: list[dict[str, float]]
+    """Resources of each bundle (only actors that reserve something have one)."""
+    runner: int
+    """Bundle index of the runner."""
+    roles: dict[str, list[int]]
+    """Bundle index of each worker, by role."""
+
+
+def bundle_layout(runner_cpus: float, roles: Sequence[RoleSpec]) -> BundleLayout:
+    """One bundle per actor that reserves CPUs or GPUs; actors that reserve nothing run in bundle 0."""
+    bundles: list[dict[str, float]] = []
+
+    def place(resources: dict[str, float]) -> int:
+        if not any(resources.values()):
+            return 0
+        bundles.append(resources)
+        return len(bundles) - 1
+
+    runner = place({"CPU": float(runner_cpus)})
+    indices = {
+        role.name: [
+            place({"CPU": float(role.cpus)} | ({"GPU": float(role.gpus)} if role.gpus else {}))
+            for _ in range(role.count)
+        ]
+        for role in roles
+    }
+    if not bundles:
+        raise ValueError("neither the runner nor any worker of the trial reserves CPUs: nothing to place")
+    return BundleLayout(bundles, runner, indices)
+
+
 class TrialGroup:
     """The placement group and actors of one trial attempt.
 
@@ -110,10 +147,8 @@ class TrialGroup:
         self.roles: list[RoleSpec] = [r for r in program.roles_for(spec, unit_cpus, counts) if r.count]
         self.runner_cpus = program.runner_cpus(spec, unit_cpus)
         self.max_restarts = max_restarts
-        self.bundles = [{"CPU": float(self.runner_cpus)}]
-        for role in self.roles:
-            bundle = {"CPU": float(role.cpus)} | ({"GPU": float(role.gpus)} if role.gpus else {})
-            self.bundles += [dict(bundle) for _ in range(role.count)]
+        self.layout = bundle_layout(self.runner_cpus, self.roles)
+        self.bundles = self.layout.bundles
         # PACK keeps a trial on one node when it fits (no network between its actors), else spreads it.
         self.placement = placement_group(self.bundles, strategy="PACK")
         self.runner = None
@@ -132,7 +167,6 @@ class TrialGroup:
 
         ``recoveries``: stateful workers the runner may recover in place (the trial's lost-process budget left).
         """
-        bundle = 1
         groups = {}
         for role in self.roles:
             # A stateful worker's call is not retried: the restarted process lacks the state it needs.
@@ -143,14 +177,13 @@ class TrialGroup:
                 max_task_retries=0 if role.stateful else -1,
             )(role.worker)
             actors = []
-            for _ in range(role.count):
+            for bundle in self.layout.roles[role.name]:
                 strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=bundle)
                 actors.append(actor_class.options(scheduling_strategy=strategy).remote(**role.kwargs))
-                bundle += 1
             self.workers[role.name] = actors
             groups[role.name] = RayRoleGroup(role.name, actors)
         runner_actor = ray.remote(num_cpus=self.runner_cpus, max_concurrency=2, max_restarts=0)(ProgramRunner)
-        strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=0)
+        strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=self.layout.runner)
         self.runner = runner_actor.options(scheduling_strategy=strategy).remote(
             self.spec, groups, self.runner_cpus, code_fingerprint(), recoveries
         )

@@ -348,7 +348,8 @@ def test_trainer_threads_follow_its_cpus():
     assert PolicyTrainer(0, cpus=0.5).threads == 1 and PolicyTrainer(0, cpus=2).threads == 2
     roles = {r.name: r for r in ApexProgram.roles_for(trial(), 1, {"relabel": 3})}
     assert roles["relabel"].count == 3 and not roles["relabel"].stateful
-    assert roles["trainer"].stateful and roles["trainer"].kwargs["cpus"] == roles["trainer"].cpus
+    # The trainer reserves nothing of its own and trains with the threads of the relabel worker it waits for.
+    assert roles["trainer"].stateful and roles["trainer"].cpus == 0 and roles["trainer"].kwargs["cpus"] == 1
 
 
 # ------------------------------------------------------------- program

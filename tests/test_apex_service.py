@@ -21,6 +21,7 @@ import ray
 import yaml
 from helpers import cli, kill_group, start_cli, sweep_runs, wait_for
 
+from orchestrator.placement import bundle_layout
 from orchestrator.scheduler import SweepScheduler
 from orchestrator.sweep import load_sweep
 from orchestrator.tracking import FINISHED, RUNNING, Tracker, default_tracking_uri
@@ -60,6 +61,22 @@ def apex_sweep(directory: Path, name: str, seeds=(0,), **base) -> Path:
     path = directory / f"{name}.yaml"
     path.write_text(yaml.safe_dump(sweep, sort_keys=False))
     return path
+
+
+def test_on_two_cores_the_relabel_worker_gets_both_and_the_trainer_shares_its_bundle(tmp_path):
+    """The phases of an APEX iteration alternate, so the runner and the trainer reserve no CPUs: on a 2-CPU
+    cluster one trial's relabel worker plans with both CPUs (or two trials run at once, one CPU each), and
+    the runner and trainer run in that worker's bundle."""
+    loaded = load_sweep(apex_sweep(tmp_path, "layout", seeds=(0, 1)))
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    assert SweepScheduler(loaded, tracker, max_concurrent=1).layout(2, 2) == (2, 1)
+    assert SweepScheduler(loaded, tracker).layout(2, 2) == (1, 2)
+    spec = loaded.trials[0].config.spec()
+    roles = METHODS["apex"].roles_for(spec, 2, {"relabel": 1})
+    layout = bundle_layout(METHODS["apex"].runner_cpus(spec, 2), roles)
+    assert layout.bundles == [{"CPU": 2.0}]
+    assert layout.runner == 0 and layout.roles == {"relabel": [0], "trainer": [0]}
+    assert next(role for role in roles if role.name == "trainer").kwargs["cpus"] == 2
 
 
 def history(tracker: Tracker, run_id: str, key: str) -> list[tuple[int, float]]:

@@ -28,11 +28,11 @@ import ray
 import toy_method
 from helpers import cli, kill_group, start_cli, sweep_runs, wait_for, write_sweep
 
-from orchestrator.placement import TrialGroup
+from orchestrator.placement import TrialGroup, bundle_layout
 from orchestrator.scheduler import ResourceError, SweepScheduler
 from orchestrator.sweep import load_sweep
 from orchestrator.tracking import FAILED, FINISHED, KILLED, RUNNING, Tracker, default_tracking_uri
-from workers.methods import METHODS, run_locally
+from workers.methods import METHODS, RoleSpec, run_locally
 
 
 @pytest.fixture(scope="module")
@@ -314,6 +314,16 @@ def test_a_trial_group_is_placed_all_at_once_or_not_at_all(tmp_path, local_ray):
         assert report.metrics["weights_version"] == 1
     finally:
         group.teardown()
+
+
+def test_actors_that_reserve_nothing_share_the_first_bundle():
+    roles = [RoleSpec("simulation", object, 2, 1), RoleSpec("trainer", object, 1, 0), RoleSpec("gpu", object, 1, 0, gpus=1)]
+    layout = bundle_layout(0.5, roles)
+    assert layout.bundles == [{"CPU": 0.5}, {"CPU": 1.0}, {"CPU": 1.0}, {"CPU": 0.0, "GPU": 1.0}]
+    assert layout.runner == 0 and layout.roles == {"simulation": [1, 2], "trainer": [0], "gpu": [3]}
+    assert bundle_layout(0, roles[:2]).roles == {"simulation": [0, 1], "trainer": [0]}
+    with pytest.raises(ValueError, match="nothing to place"):
+        bundle_layout(0, [RoleSpec("trainer", object, 1, 0)])
 
 
 def test_a_trial_larger_than_the_cluster_is_refused_before_anything_runs(tmp_path, local_ray):

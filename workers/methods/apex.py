@@ -80,12 +80,11 @@ TABLE_9: dict[tuple[str, int], dict[str, float]] = {
 }
 """Table 9: APEX expert and policy (returns, success rates for Fetch and Door) and plain iCEM, by budget."""
 
-TRAINER_CPUS = 0.5
-"""CPUs the trainer reserves. The phases of an iteration run one after another, so the trainer computes
-only while the relabel workers wait; half a CPU lets a trial with one relabel worker fit on two cores.
-torch runs max(1, int(cpus)) threads."""
-RUNNER_CPUS = 0.5
-"""CPUs the program's own process reserves: it coordinates and never computes during a phase."""
+# CPUs: the phases of an iteration run one after another, so only one kind of actor computes at a
+# time. The relabel workers hold the trial's CPUs; the runner only coordinates and reserves none; the
+# trainer reserves none either and trains in the first relabel worker's bundle, with that worker's
+# threads, while the relabel workers wait. On two cores one relabel worker thus plans with two threads
+# (with reservations of their own, the runner and trainer would leave it one).
 SUMMARY_ITERATIONS = 5
 """The summary averages the last this many iterations (the issue's 'mean of the last 5 iterations')."""
 
@@ -191,15 +190,16 @@ class ApexProgram(Program):
     def roles_for(cls, trial: TrialSpec, unit_cpus: int, counts) -> list[RoleSpec]:
         settings = trial.settings
         relabel = {"task_name": trial.task, "task_options": settings.task_options, "threads": unit_cpus}
-        trainer = {"seed": trial.seed, "settings": settings.policy, "task": trial.task, "cpus": TRAINER_CPUS}
+        # The trainer borrows the first relabel worker's CPUs (see the note on CPUs above).
+        trainer = {"seed": trial.seed, "settings": settings.policy, "task": trial.task, "cpus": unit_cpus}
         return [
             RoleSpec("relabel", RelabelWorker, counts.get("relabel", 1), unit_cpus, relabel),
-            RoleSpec("trainer", PolicyTrainer, 1, TRAINER_CPUS, trainer, stateful=True),
+            RoleSpec("trainer", PolicyTrainer, 1, 0, trainer, stateful=True),
         ]
 
     @classmethod
     def runner_cpus(cls, trial: TrialSpec, unit_cpus: int) -> float:  # type: ignore[override]
-        return RUNNER_CPUS
+        return 0.0  # it coordinates the phases and computes during none of them
 
     @classmethod
     def labels(cls, trial: TrialSpec) -> dict[str, str]:
