@@ -38,6 +38,24 @@ def test_colored_noise_variance_over_a_planning_horizon(beta, factor, length):
     assert noise.var(axis=0).mean() == pytest.approx(factor, rel=0.04)
 
 
+def test_colored_noise_release_2_1_doubles_the_constant_term():
+    """colorednoise 2.1 doubled the variance of the real DC (and Nyquist) coefficients; 1.1 did not."""
+    new, old = (colored_noise(3.0, (40000, 30), np.random.default_rng(1), release) for release in ("2.1", "1.1"))
+    assert new.mean(axis=1).var() == pytest.approx(2 * old.mean(axis=1).var(), rel=0.05)
+    assert old.var(axis=0).mean() == pytest.approx(1.21, rel=0.04)
+    with pytest.raises(ValueError, match="release"):
+        colored_noise(3.0, (2, 30), np.random.default_rng(1), "2.2")
+
+
+def test_the_planner_samples_with_the_configured_noise_release():
+    samples = {}
+    for release in ("2.1", "1.1"):
+        config = PlannerConfig(budget=50, horizon=30, noise_beta=3.0, noise_release=release).resolved(3.0)
+        samples[release] = CEMPlanner(config, 2, seed=0)._sample(np.zeros((30, 2)), np.full((30, 2), 0.5), 2000)
+    offsets = {release: values.mean(axis=1).var() for release, values in samples.items()}
+    assert offsets["2.1"] > 1.5 * offsets["1.1"]
+
+
 def test_colored_noise_correlation_grows_with_beta():
     lag_one = []
     for beta in (0.0, 1.0, 2.0, 3.0):

@@ -173,7 +173,9 @@ class CEMPlanner:
         config = self.config
         if config.bounds == "clip":
             # Colored noise C^beta(d, h): correlations run along time (section 3.2.1).
-            noise = colored_noise(config.noise_beta, (count, self.action_dim, config.horizon), self.rng)
+            noise = colored_noise(
+                config.noise_beta, (count, self.action_dim, config.horizon), self.rng, config.noise_release
+            )
             # The thesis pseudo-code writes sigma^2 but scales by the standard deviation.
             return np.clip(mean + noise.transpose(0, 2, 1) * std, LOW, HIGH)
         if config.bounds == "truncate":

@@ -6,7 +6,13 @@ import numpy as np
 from scipy.special import ndtr, ndtri
 
 
-def colored_noise(beta: float, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+NOISE_RELEASES = ("2.1", "1.1")
+"""Releases of the colorednoise package whose sampling :func:`colored_noise` follows (see its docstring)."""
+
+
+def colored_noise(
+    beta: float, shape: tuple[int, ...], rng: np.random.Generator, release: str = "2.1"
+) -> np.ndarray:
     """Gaussian noise with power spectral density ~ 1/f^beta along the last axis.
 
     Thesis eq. 12-13, after Timmer & Koenig (1995): draw random Fourier
@@ -19,7 +25,15 @@ def colored_noise(beta: float, shape: tuple[int, ...], rng: np.random.Generator)
         beta: spectral exponent, >= 0.
         shape: output shape; correlations run along the last axis (time).
         rng: random generator (the only source of randomness).
+        release: which colorednoise release to follow. From 2.1.0 (June 2022) the
+            real DC and Nyquist coefficients get twice the variance (below);
+            "1.1" leaves them as drawn, as the releases up to 2.0 did, which the
+            authors' public iCEM code (2020-21, colorednoise unpinned) ran with.
+            At h = 30 and beta = 3 the DC term carries most of the power, so
+            "2.1" samples with variance 1.41 against 1.21 for "1.1".
     """
+    if release not in NOISE_RELEASES:
+        raise ValueError(f"colored-noise release must be one of {NOISE_RELEASES}, got {release!r}")
     if beta < 0:
         raise ValueError(f"colored-noise beta must be >= 0, got {beta}")
     length = shape[-1]
@@ -30,11 +44,11 @@ def colored_noise(beta: float, shape: tuple[int, ...], rng: np.random.Generator)
     amplitudes = frequencies ** (-beta / 2.0)
 
     # Normalisation of Timmer & Koenig's algorithm as packaged in colorednoise
-    # (the implementation behind the thesis's results): Parseval's sum over the
+    # (every release): Parseval's sum over the
     # non-zero frequencies, the real Nyquist term counted at half weight. It
     # leaves out the DC term, so the variance is somewhat above 1 (h = 30: 1.06
     # at beta = 0.25, 1.16 at 1, 1.31 at 2, 1.41 at 3; for beta < 1 it tends to
-    # 1 as the horizon grows). We keep it to sample as the thesis's runs did.
+    # 1 as the horizon grows; release "2.1"). We keep it to sample as the thesis's runs did.
     weights = amplitudes[1:].copy()
     if length % 2 == 0:
         weights[-1] /= 2.0
@@ -43,13 +57,15 @@ def colored_noise(beta: float, shape: tuple[int, ...], rng: np.random.Generator)
     coefficient_shape = (*shape[:-1], frequencies.size)
     real = rng.standard_normal(coefficient_shape) * amplitudes
     imaginary = rng.standard_normal(coefficient_shape) * amplitudes
-    # A real signal needs real DC (and Nyquist) coefficients; their variance is
-    # doubled so that every frequency carries its share of the power.
+    # A real signal needs real DC (and Nyquist) coefficients. colorednoise 2.1
+    # doubles their variance so that every frequency carries its share of the
+    # power; earlier releases did not.
+    boost = np.sqrt(2.0) if release == "2.1" else 1.0
     imaginary[..., 0] = 0.0
-    real[..., 0] *= np.sqrt(2.0)
+    real[..., 0] *= boost
     if length % 2 == 0:
         imaginary[..., -1] = 0.0
-        real[..., -1] *= np.sqrt(2.0)
+        real[..., -1] *= boost
     return np.fft.irfft(real + 1j * imaginary, n=length, axis=-1) / sigma
 
 
