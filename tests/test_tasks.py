@@ -161,3 +161,81 @@ def test_relocate_planning_cost_leaves_out_the_palm_to_target_term_by_default(ta
     default, with_term = Relocate(), Relocate(palm_target_term=True)
     np.testing.assert_allclose(with_term.costs(model, lifted_batch), -task.rewards(model, lifted_batch))
     np.testing.assert_allclose(default.costs(model, lifted_batch) + palm_target, with_term.costs(model, lifted_batch))
+
+
+# ------------------------------------------------ MuJoCo >= 3.12 compatibility
+BALL_AND_FRIENDS = """
+<mujoco>
+  <worldbody>
+    <body name="free"><freejoint name="free"/><geom size="0.1"/></body>
+    <body name="ball" pos="1 0 0"><joint name="ball" type="ball"/><geom size="0.1"/>
+      <body name="arm" pos="0 0 0.3"><joint name="hinge" type="hinge"/><joint name="slide" type="slide"/>
+        <geom size="0.1"/></body></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _original_mujoco_utils():
+    """A fresh copy of gymnasium-robotics' mujoco_utils module, untouched by the patch."""
+    import importlib.util
+
+    import gymnasium_robotics.utils.mujoco_utils as patched
+
+    spec = importlib.util.spec_from_file_location("original_mujoco_utils", patched.__file__)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# (joint, kind) -> (slice start, width) in BALL_AND_FRIENDS, as gymnasium-robotics 1.4.2 reads them; its
+# get_joint_qvel reads 4 values of a ball joint (3 degrees of freedom), set_joint_qvel writes 3.
+JOINT_SLICES = {("free", "qpos"): (0, 7), ("ball", "qpos"): (7, 4), ("hinge", "qpos"): (11, 1),
+                ("slide", "qpos"): (12, 1), ("free", "qvel"): (0, 6), ("ball", "qvel"): (6, 4),
+                ("hinge", "qvel"): (9, 1), ("slide", "qvel"): (10, 1)}  # fmt: skip
+
+
+def test_joint_helpers_replacing_gymnasium_robotics_ones_behave_like_them():
+    """The replacements work on every MuJoCo and, where the originals still run (MuJoCo < 3.12), read and
+    write exactly what they do."""
+    import mujoco
+
+    from workers.tasks import mujoco_compat
+
+    original = _original_mujoco_utils() if tuple(map(int, mujoco.__version__.split(".")[:2])) < (3, 12) else None
+    model = mujoco.MjModel.from_xml_string(BALL_AND_FRIENDS)
+    rng = np.random.default_rng(0)
+    for (joint, kind), (start, width) in JOINT_SLICES.items():
+        data = mujoco.MjData(model)
+        setattr(data, kind, rng.normal(size=getattr(data, kind).shape))
+        np.testing.assert_array_equal(
+            getattr(mujoco_compat, f"get_joint_{kind}")(model, data, joint), getattr(data, kind)[start : start + width]
+        )
+        written = rng.normal(size=3 if (joint, kind) == ("ball", "qvel") else width)
+        expected = getattr(data, kind).copy()
+        expected[start : start + len(written)] = written
+        getattr(mujoco_compat, f"set_joint_{kind}")(model, data, joint, written)
+        np.testing.assert_array_equal(getattr(data, kind), expected)
+        if original is not None:
+            reference = mujoco.MjData(model)
+            setattr(reference, kind, getattr(data, kind))
+            np.testing.assert_array_equal(getattr(original, f"get_joint_{kind}")(model, reference, joint),
+                                          getattr(mujoco_compat, f"get_joint_{kind}")(model, data, joint))  # fmt: skip
+            getattr(original, f"set_joint_{kind}")(model, reference, joint, written)
+            np.testing.assert_array_equal(getattr(reference, kind), getattr(data, kind))
+    with pytest.raises(AssertionError, match="incorrect shape"):
+        mujoco_compat.set_joint_qpos(model, mujoco.MjData(model), "free", np.zeros(3))
+
+
+def test_robotics_environments_are_built_with_the_replaced_joint_helpers():
+    import gymnasium_robotics.utils.mujoco_utils as utils
+
+    from workers.tasks import mujoco_compat
+    from workers.tasks.base import register_robotics_envs
+
+    register_robotics_envs()
+    for name, function in mujoco_compat.REPLACEMENTS.items():
+        assert getattr(utils, name) is function
+    env = make_task("fetch_pick_place_sparse").make_env()
+    env.reset(seed=0)  # places the object through set_joint_qpos
+    env.close()

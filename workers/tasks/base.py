@@ -178,8 +178,11 @@ def register_robotics_envs() -> None:
     functions* changed in 1.2.1; the Adroit tasks compute DAPG's rewards
     themselves (see workers/tasks/adroit.py), so the notice is not shown.
     """
+    from workers.tasks.mujoco_compat import patch_joint_helpers
+
     with contextlib.redirect_stderr(io.StringIO()):
         import gymnasium_robotics
+    patch_joint_helpers()  # before any environment is built (MuJoCo >= 3.12; see the module)
     gym.register_envs(gymnasium_robotics)
 
 

@@ -35,9 +35,7 @@ the system temp directory, as gymnasium-robotics does for its mazes.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import io
 import os
 import tempfile
 from abc import ABC, abstractmethod
@@ -49,14 +47,8 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from workers.tasks.base import TaskOptions
+from workers.tasks.base import TaskOptions, register_robotics_envs
 from workers.tasks.maze_distance import MazeDistance
-
-
-def _register_robotics_envs() -> None:
-    with contextlib.redirect_stderr(io.StringIO()):  # gymnasium_robotics prints an Adroit notice on import
-        import gymnasium_robotics
-    gym.register_envs(gymnasium_robotics)
 
 
 class GoalTaskOptions(TaskOptions):
@@ -205,7 +197,7 @@ class PointMaze(GoalTask):
         self.maze_distance = MazeDistance(self.maze_map, 1.0, self.options.resolution, self.ball_radius)
 
     def make_env(self) -> gym.Env:
-        _register_robotics_envs()
+        register_robotics_envs()
         # continuing_task with reset_target off: the goal stays put and the episode never terminates early,
         # so every episode has exactly episode_length steps (HER and the temporal loss index within it).
         env = gym.make(
@@ -240,7 +232,7 @@ def fetch_xml_with_wall(base: str, name: str, center: tuple[float, ...], half_si
     directory. The file name carries a hash of its content, so concurrent
     processes write identical files.
     """
-    _register_robotics_envs()
+    register_robotics_envs()
     import gymnasium_robotics
 
     folder = Path(gymnasium_robotics.__file__).parent / "envs" / "assets" / "fetch"
@@ -261,7 +253,7 @@ def fetch_xml_with_wall(base: str, name: str, center: tuple[float, ...], half_si
 
 def _fetch_env_classes():
     """The wall environments, defined lazily so importing this module does not import gymnasium_robotics."""
-    _register_robotics_envs()
+    register_robotics_envs()
     from gymnasium_robotics.envs.fetch import MujocoFetchEnv
 
     reach_qpos = {"robot0:slide0": 0.4049, "robot0:slide1": 0.48, "robot0:slide2": 0.0}
@@ -385,7 +377,7 @@ class FetchTask(GoalTask):
     action_dim = 4
 
     def make_env(self) -> gym.Env:
-        _register_robotics_envs()
+        register_robotics_envs()
         return gym.make(self.env_id, max_episode_steps=self.episode_length)
 
 
