@@ -230,6 +230,24 @@ class Sweep(_UserModel):
 
 
 # ----------------------------------------------------------------- trials
+IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {"noise_release": "2.1"}
+"""Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name,
+at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a
+setting does not change the identity of trials already run (and ``--resume`` still finds them)."""
+
+
+def _without_neutral_defaults(settings: Any) -> Any:
+    if isinstance(settings, dict):
+        return {
+            key: _without_neutral_defaults(value)
+            for key, value in settings.items()
+            if not (key in IDENTITY_NEUTRAL_DEFAULTS and value == IDENTITY_NEUTRAL_DEFAULTS[key])
+        }
+    if isinstance(settings, list):
+        return [_without_neutral_defaults(value) for value in settings]
+    return settings
+
+
 class TrialConfig(BaseModel):
     """Everything that determines a trial's result (resources do not)."""
 
@@ -244,7 +262,7 @@ class TrialConfig(BaseModel):
         return {
             "method": self.method,
             "task": self.task,
-            "settings": self.settings.model_dump(mode="json"),
+            "settings": _without_neutral_defaults(self.settings.model_dump(mode="json")),
             "seed": self.seed,
         }
 

@@ -77,6 +77,10 @@ def test_on_two_cores_the_relabel_worker_gets_both_and_the_trainer_shares_its_bu
     assert layout.bundles == [{"CPU": 2.0}]
     assert layout.runner == 0 and layout.roles == {"relabel": [0], "trainer": [0]}
     assert next(role for role in roles if role.name == "trainer").kwargs["cpus"] == 2
+    # With more relabel workers the trainer still shares the first one's bundle, of the same size.
+    roles = METHODS["apex"].roles_for(spec, 2, {"relabel": 3})
+    layout = bundle_layout(METHODS["apex"].runner_cpus(spec, 2), roles)
+    assert layout.bundles == [{"CPU": 2.0}] * 3 and layout.roles == {"relabel": [0, 1, 2], "trainer": [0]}
 
 
 def history(tracker: Tracker, run_id: str, key: str) -> list[tuple[int, float]]:

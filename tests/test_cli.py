@@ -190,6 +190,29 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
     assert a.key == b.key != c.key
 
 
+@pytest.mark.parametrize(
+    "sweep, first, last",
+    [
+        ("fetch_pick_place", "a5f5dd7184910803", "b51fb7a40058f900"),
+        ("apex_fetch", "7677980e0b9d8bb4", "848f08eb2c6baebe"),
+        ("razer_bridge_maze", "d52a4c09b582765a", "df252c548e89626c"),
+    ],
+)
+def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last):
+    """Keys of shipped sweeps as they were before `planner.noise_release` existed: --resume still finds their
+    trials. Setting the new field to anything else is a different trial."""
+    trials = load_sweep(ROOT / "sweeps" / "paper" / f"{sweep}.yaml").trials
+    assert (trials[0].key, trials[-1].key) == (first, last)
+
+
+def test_a_non_default_noise_release_is_another_trial(tmp_path):
+    keys = [
+        load_sweep(write_sweep(tmp_path, f"n{i}", base={"planner": {"budget": 50, **release}})).trials[0].key
+        for i, release in enumerate(({}, {"noise_release": "2.1"}, {"noise_release": "1.1"}))
+    ]
+    assert keys[0] == keys[1] != keys[2]
+
+
 def test_random_parameters_are_repeatable(tmp_path):
     fields = dict(
         parameters={"planner.sigma_init": {"distribution": "uniform", "low": 0.2, "high": 0.8}}, num_samples=3

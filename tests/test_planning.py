@@ -43,6 +43,8 @@ def test_colored_noise_release_2_1_doubles_the_constant_term():
     new, old = (colored_noise(3.0, (40000, 30), np.random.default_rng(1), release) for release in ("2.1", "1.1"))
     assert new.mean(axis=1).var() == pytest.approx(2 * old.mean(axis=1).var(), rel=0.05)
     assert old.var(axis=0).mean() == pytest.approx(1.21, rel=0.04)
+    white = colored_noise(0.0, (40000, 30), np.random.default_rng(1), "1.1")  # 1.1 is not quite white at beta 0
+    assert white.mean(axis=1).var() == pytest.approx(0.5 / 30, rel=0.1)
     with pytest.raises(ValueError, match="release"):
         colored_noise(3.0, (2, 30), np.random.default_rng(1), "2.2")
 

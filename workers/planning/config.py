@@ -115,7 +115,7 @@ class PlannerConfig(BaseModel):
     noise_release: Literal["2.1", "1.1"] = "2.1"
     """Which colorednoise release the colored noise follows: "2.1" (from June 2022) doubles the variance of the
     constant (DC) and Nyquist terms; "1.1", as the authors' public iCEM code ran, does not (workers/planning/noise.py).
-    At beta 3 over h = 30 "2.1" has about twice the per-sequence constant offset."""
+    At beta 3 over h = 30 "2.1" gives the per-sequence constant offset twice the variance."""
     momentum: float | None = Field(None, ge=0, lt=1)
     """Momentum alpha of the refit: mu <- alpha mu + (1 - alpha) mu_elites, same for sigma (section 3.1.1)."""
     population_decay: float | None = Field(None, ge=1)

@@ -29,15 +29,19 @@ def colored_noise(
             real DC and Nyquist coefficients get twice the variance (below);
             "1.1" leaves them as drawn, as the releases up to 2.0 did, which the
             authors' public iCEM code (2020-21, colorednoise unpinned) ran with.
-            At h = 30 and beta = 3 the DC term carries most of the power, so
-            "2.1" samples with variance 1.41 against 1.21 for "1.1".
+            At h = 30 and beta = 3, "2.1" gives each sequence's constant offset
+            twice the variance (0.41 against 0.21) and the noise a variance of
+            1.41 against 1.21.
     """
     if release not in NOISE_RELEASES:
         raise ValueError(f"colored-noise release must be one of {NOISE_RELEASES}, got {release!r}")
     if beta < 0:
         raise ValueError(f"colored-noise beta must be >= 0, got {beta}")
     length = shape[-1]
-    if beta == 0 or length < 2:
+    if length < 2 or (beta == 0 and release == "2.1"):
+        # With every coefficient at the same variance (2.1), beta = 0 is exactly white noise. Release 1.1's
+        # undoubled DC and Nyquist terms make even its beta = 0 noise slightly non-white; it goes through the
+        # transform below.
         return rng.standard_normal(shape)
     frequencies = np.fft.rfftfreq(length)
     frequencies[0] = frequencies[1]  # the DC term gets the lowest frequency's amplitude
