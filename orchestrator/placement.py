@@ -103,12 +103,14 @@ class BundleLayout(NamedTuple):
 
 
 def bundle_layout(runner_cpus: float, roles: Sequence[RoleSpec]) -> BundleLayout:
-    """One bundle per actor that reserves CPUs or GPUs; actors that reserve nothing run in bundle 0."""
+    """One bundle per actor that reserves CPUs or GPUs; actors that reserve nothing run in the first bundle
+    with CPUs (they compute on the CPUs of the actor whose bundle they share, never in a GPU-only bundle)."""
     bundles: list[dict[str, float]] = []
+    SHARED = -1  # placeholder until the first bundle with CPUs is known
 
     def place(resources: dict[str, float]) -> int:
         if not any(resources.values()):
-            return 0
+            return SHARED
         bundles.append(resources)
         return len(bundles) - 1
 
@@ -120,9 +122,33 @@ def bundle_layout(runner_cpus: float, roles: Sequence[RoleSpec]) -> BundleLayout
         ]
         for role in roles
     }
-    if not bundles:
+    with_cpus = [index for index, bundle in enumerate(bundles) if bundle["CPU"] > 0]
+    if not with_cpus:
         raise ValueError("neither the runner nor any worker of the trial reserves CPUs: nothing to place")
-    return BundleLayout(bundles, runner, indices)
+
+    def resolve(index: int) -> int:
+        return with_cpus[0] if index == SHARED else index
+
+    return BundleLayout(bundles, resolve(runner), {name: [resolve(i) for i in ixs] for name, ixs in indices.items()})
+
+
+def groups_that_fit(bundles: Sequence[Mapping[str, float]], node_cpus: Sequence[float], limit: int) -> int:
+    """How many copies of a group with these bundles the nodes hold at once (at most ``limit``).
+
+    A bundle lives on one node, so a trial's bundles must each fit a node's free CPUs; copies are packed
+    greedily, largest bundle first into the node with the most CPUs left (Ray's PACK strategy spreads a
+    group that does not fit one node the same way). Greedy packing can undercount what an optimal packing
+    holds, never overcount.
+    """
+    free = sorted((float(c) for c in node_cpus), reverse=True)
+    sizes = sorted((float(b.get("CPU", 0.0)) for b in bundles), reverse=True)
+    for copies in range(limit):
+        for size in sizes:
+            node = max(range(len(free)), key=free.__getitem__, default=None)
+            if node is None or free[node] + 1e-9 < size:
+                return copies
+            free[node] -= size
+    return limit
 
 
 class TrialGroup:

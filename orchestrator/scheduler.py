@@ -23,14 +23,14 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 from orchestrator import provenance, report
 from orchestrator.failures import BAD_CHECKPOINT, CODE_ERROR, LOST_PROCESS, Failure, classify
 from orchestrator.interrupt import InterruptRequest
-from orchestrator.placement import TrialGroup
+from orchestrator.placement import TrialGroup, bundle_layout, groups_that_fit
 from orchestrator.sweep import LoadedSweep, Trial
 from orchestrator.tracking import CORE_SECONDS_PER_WORK, FAILED, FINISHED, KILLED, ROUND_SECONDS, Tracker, TrialRun
 from workers.methods import METHODS
@@ -184,6 +184,14 @@ def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
     return True
 
 
+def node_cpus() -> list[float]:
+    """CPUs of each live node of the connected Ray cluster."""
+    import ray
+
+    cpus = [node["Resources"].get("CPU", 0.0) for node in ray.nodes() if node.get("Alive")]
+    return [c for c in cpus if c > 0] or [ray.cluster_resources().get("CPU", 1.0)]
+
+
 class SweepScheduler:
     """Runs the pending trials of a loaded sweep on Ray and records them through a Tracker."""
 
@@ -232,14 +240,24 @@ class SweepScheduler:
         )
         return run_id, []
 
+    def group_bundles(self, unit: int) -> list[dict[str, float]]:
+        """The placement-group bundles of one trial when a unit of work gets ``unit`` CPUs."""
+        spec = self.loaded.trials[0].config.spec()
+        roles = [role for role in self.program.roles_for(spec, unit, self.counts) if role.count]
+        return bundle_layout(self.program.runner_cpus(spec, unit), roles).bundles
+
     def group_cpus(self, unit: int) -> float:
         """CPUs one trial's group holds when a unit of work gets ``unit`` CPUs."""
-        spec = self.loaded.trials[0].config.spec()
-        roles = self.program.roles_for(spec, unit, self.counts)
-        return self.program.runner_cpus(spec, unit) + sum(r.cpus * r.count for r in roles)
+        return sum(bundle["CPU"] for bundle in self.group_bundles(unit))
 
-    def layout(self, cpus: float, pending: int) -> tuple[int, int]:
-        """(CPUs per unit of work, concurrent trials) for a cluster with ``cpus`` CPUs."""
+    def layout(self, nodes: float | Sequence[float], pending: int) -> tuple[int, int]:
+        """(CPUs per unit of work, concurrent trials) on nodes with these CPUs (one number: one node).
+
+        Raises ResourceError when not even one trial can be placed: more CPUs than the cluster has, or a
+        bundle (one actor's CPUs, which live on one node) larger than every node.
+        """
+        per_node = sorted([float(nodes)] if isinstance(nodes, (int, float)) else map(float, nodes), reverse=True)
+        cpus, largest = sum(per_node), per_node[0] if per_node else 0.0
         threads = self.sweep.resources.threads_per_worker
         if threads is None:
             # Enough trials to use every CPU once, the rest of the CPUs as threads.
@@ -247,6 +265,8 @@ class SweepScheduler:
             if self.max_concurrent:
                 concurrent = min(concurrent, self.max_concurrent)
             threads = max(1, int(cpus // (concurrent * self.group_cpus(1))))
+            # A unit's CPUs are one actor's bundle, which lives on one node.
+            threads = max(1, min(threads, int(largest)))
         need = self.group_cpus(threads)
         if need > cpus:
             raise ResourceError(
@@ -254,7 +274,15 @@ class SweepScheduler:
                 f"Ray cluster has {cpus:g}; lower resources.simulation_workers, resources.workers or "
                 "resources.threads_per_worker, or add nodes"
             )
-        concurrent = max(1, int(cpus // need))
+        bundles = self.group_bundles(threads)
+        concurrent = groups_that_fit(bundles, per_node, max(1, int(cpus // need)))
+        if concurrent == 0:
+            sizes = sorted({bundle["CPU"] for bundle in bundles if bundle["CPU"]}, reverse=True)
+            raise ResourceError(
+                f"a trial of this sweep reserves bundles of {', '.join(f'{s:g}' for s in sizes)} CPUs, each on one "
+                f"node, and the Ray cluster's nodes have {', '.join(f'{c:g}' for c in per_node)} CPUs, so they "
+                "cannot all be placed; lower resources.threads_per_worker or add larger nodes"
+            )
         if self.max_concurrent:
             concurrent = min(concurrent, self.max_concurrent)
         return threads, concurrent
@@ -266,7 +294,7 @@ class SweepScheduler:
         started_ray = connect_ray(self.address)  # before any MLflow run exists: a bad address leaves no trace
         parent_id = None
         try:
-            cpus = ray.cluster_resources().get("CPU", 1)
+            cpus = node_cpus()
             self.layout(cpus, 1)  # a sweep that can never be placed is refused before anything is logged
             parent_id, previous_runs = self._parent_run()
             self._parent_id = parent_id

@@ -179,3 +179,15 @@ def test_sweep_on_two_node_cluster_with_mlflow_server(tmp_path, cluster, mlflow_
     artifacts = {a.path for a in client.list_artifacts(parents[0].info.run_id)}
     assert {"sweep.yaml", "summary.csv", "curves.png"} <= artifacts  # proxied through the server
     print(f"two-node sweep took {time.monotonic() - started:.1f} s")
+
+
+def test_one_cpu_nodes_get_one_cpu_bundles_and_a_bundle_larger_than_every_node_is_refused(tmp_path, cluster):
+    """The cluster has 2 CPUs but no node with 2: by default a lone trial plans with 1-CPU units instead of
+    waiting forever for a 2-CPU bundle; a sweep that pins 2 threads per worker is refused before it starts."""
+    result = cli("run", str(write_sweep(tmp_path, "units")), "--address", cluster, "--quiet", cwd=tmp_path, env=AUTH,
+                 timeout=240)
+    assert result.returncode == 0, result.stderr[-3000:]
+    pinned = write_sweep(tmp_path, "pinned", resources={"threads_per_worker": 2})
+    result = cli("run", str(pinned), "--address", cluster, "--quiet", cwd=tmp_path, env=AUTH, timeout=120)
+    assert result.returncode != 0
+    assert "bundles of 2 CPUs, each on one node" in result.stderr and "nodes have 1, 1 CPUs" in result.stderr

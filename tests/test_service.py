@@ -28,7 +28,7 @@ import ray
 import toy_method
 from helpers import cli, kill_group, start_cli, sweep_runs, wait_for, write_sweep
 
-from orchestrator.placement import TrialGroup, bundle_layout
+from orchestrator.placement import TrialGroup, bundle_layout, groups_that_fit
 from orchestrator.scheduler import ResourceError, SweepScheduler
 from orchestrator.sweep import load_sweep
 from orchestrator.tracking import FAILED, FINISHED, KILLED, RUNNING, Tracker, default_tracking_uri
@@ -324,6 +324,39 @@ def test_actors_that_reserve_nothing_share_the_first_bundle():
     assert bundle_layout(0, roles[:2]).roles == {"simulation": [0, 1], "trainer": [0]}
     with pytest.raises(ValueError, match="nothing to place"):
         bundle_layout(0, [RoleSpec("trainer", object, 1, 0)])
+
+
+def test_zero_cpu_actors_never_land_in_a_gpu_only_bundle():
+    roles = [RoleSpec("gpu", object, 1, 0, gpus=1), RoleSpec("relabel", object, 1, 2), RoleSpec("trainer", object, 1, 0)]
+    layout = bundle_layout(0, roles)
+    assert layout.bundles == [{"CPU": 0.0, "GPU": 1.0}, {"CPU": 2.0}]
+    assert layout.runner == 1 and layout.roles == {"gpu": [0], "relabel": [1], "trainer": [1]}
+
+
+@pytest.mark.parametrize(
+    "bundles, nodes, fit",
+    [
+        ([{"CPU": 1}], [2], 2),
+        ([{"CPU": 2}], [1, 1], 0),  # a bundle lives on one node
+        ([{"CPU": 1}, {"CPU": 1}], [1, 1], 1),  # one group spread over two nodes
+        ([{"CPU": 2}, {"CPU": 0.5}], [2, 1, 1], 1),
+        ([{"CPU": 0.0, "GPU": 1.0}, {"CPU": 1}], [4], 4),
+    ],
+)
+def test_groups_that_fit_count_whole_groups_placed_bundle_by_bundle(bundles, nodes, fit):
+    assert groups_that_fit(bundles, nodes, limit=4) == fit
+
+
+def test_a_cluster_of_one_cpu_nodes_gets_one_cpu_units_not_a_hanging_placement(tmp_path):
+    """Two 1-CPU nodes hold 2 CPUs, but no bundle of 2: units of one CPU, two trials at once."""
+    loaded = load_sweep(write_sweep(tmp_path, "nodes", seeds=[0, 1]))
+    assert SweepScheduler(loaded, tracker=None, max_concurrent=1).layout(2, 2) == (2, 1)
+    assert SweepScheduler(loaded, tracker=None, max_concurrent=1).layout([1, 1], 2) == (1, 1)
+    assert SweepScheduler(loaded, tracker=None).layout([1, 1], 2) == (1, 2)
+    pinned = load_sweep(write_sweep(tmp_path, "pinned", resources={"threads_per_worker": 2}))
+    assert SweepScheduler(pinned, tracker=None).layout(2, 1) == (2, 1)
+    with pytest.raises(ResourceError, match="bundles of 2 CPUs, each on one node.*nodes have 1, 1 CPUs"):
+        SweepScheduler(pinned, tracker=None).layout([1, 1], 1)
 
 
 def test_a_trial_larger_than_the_cluster_is_refused_before_anything_runs(tmp_path, local_ray):
