@@ -196,6 +196,27 @@ def test_rows_play_the_same_episode_seeds():
         program.close()
 
 
+@pytest.mark.parametrize("release", ["1.1", "2.1"])
+def test_random_episodes_draw_their_noise_as_the_planner_release(release):
+    """The loop's colored-noise episodes follow ``planner.noise_release`` like the planner's samples."""
+    from workers.dynamics.episodes import EpisodeJob, PlanningWorker, run_random_episode
+
+    trial = tiny_trial(planner={**TINY["planner"], "noise_release": release})
+    (planner,) = [role for role in MbrlProgram.roles_for(trial, 1, {"planner": 2}) if role.name == "planner"]
+    worker = PlanningWorker(**planner.kwargs)
+    try:
+        actions = worker.run_episode(None, EpisodeJob(seed=3)).trajectory.actions
+        other = {"1.1": "2.1", "2.1": "1.1"}[release]
+        expected = {
+            r: run_random_episode(worker.task, worker.env, 3, worker.random_beta, worker.random_scale, r)
+            for r in (release, other)
+        }
+        np.testing.assert_array_equal(actions, expected[release].trajectory.actions)
+        assert not np.allclose(actions, expected[other].trajectory.actions)
+    finally:
+        worker.close()
+
+
 def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
     _, program, reports = tiny_run
     paths = [a.path for r in reports for a in r.artifacts]

@@ -65,10 +65,13 @@ class EpisodeOutcome(NamedTuple):
     """Version of the weights the episode was planned with (None: random episode)."""
 
 
-def run_random_episode(task, env, seed: int, beta: float, scale: float = 1.0) -> EpisodeOutcome:
-    """An episode of colored-noise actions (exponent ``beta``, std ``scale``, clipped to [-1, 1])."""
+def run_random_episode(
+    task, env, seed: int, beta: float, scale: float = 1.0, release: str = "2.1"
+) -> EpisodeOutcome:
+    """An episode of colored-noise actions (exponent ``beta``, std ``scale``, clipped to [-1, 1]), drawn as the
+    colorednoise ``release`` the planner follows does (workers/planning/noise.py)."""
     rng = np.random.default_rng(seed)
-    noise = colored_noise(beta, (1, task.action_dim, task.episode_length), rng)[0].T  # (T, d)
+    noise = colored_noise(beta, (1, task.action_dim, task.episode_length), rng, release)[0].T  # (T, d)
     actions = np.clip(scale * noise, -1.0, 1.0)
     observation, _ = env.reset(seed=seed)
     recorder = TrajectoryRecorder(np.asarray(observation, dtype=np.float64))
@@ -166,7 +169,7 @@ class PlanningWorker:
         task_options: the task's options.
         planner: a resolved PlannerConfig as a dict.
         particles: PETSUS particles per sequence.
-        random_beta: colored-noise exponent of random episodes.
+        random_beta: colored-noise exponent of random episodes (drawn as the planner's ``noise_release``).
         random_scale: standard deviation of random episodes' actions before clipping.
         cpus: CPUs this worker holds; torch uses as many threads.
     """
@@ -209,7 +212,8 @@ class PlanningWorker:
 
         torch.set_num_threads(self.threads)  # a host process (the runner) may have set its own count since
         if job.razer is None:
-            return run_random_episode(self.task, self.env, job.seed, self.random_beta, self.random_scale)
+            release = self.planner_config.noise_release
+            return run_random_episode(self.task, self.env, job.seed, self.random_beta, self.random_scale, release)
         razer = RazerSettings(**job.razer)
         return run_model_episode(
             self.task, self.env, self.model(weights), self.planner_config, razer, self.particles, job.seed, on_step
