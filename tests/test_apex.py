@@ -214,6 +214,22 @@ def test_mean_and_policy_sequence_each_replace_one_sample_of_the_last_iteration(
     assert not any(np.allclose(e, sequence) for e in calls[False][0][-1])
 
 
+@pytest.mark.parametrize("policy_samples, rollouts", [(True, 3), (False, 1)])
+def test_the_policy_is_rolled_out_only_when_its_sequence_is_used(workers, monkeypatch, policy_samples, rollouts):
+    """Warm start needs the policy's sequence at t = 0 only; policy samples need it at every step."""
+    worker = workers("point_reach")
+    policy = random_policy(worker)
+    state, observation = start(worker)
+    expert = worker.expert(expert_settings("point_reach", policy_samples=policy_samples), seed=4)
+    expert.reset(4)
+    calls = []
+    rollout = expert.policy_rollout
+    monkeypatch.setattr(expert, "policy_rollout", lambda *a: (calls.append(1), rollout(*a))[1])
+    for _ in range(3):
+        expert.act(state, observation, policy)
+    assert len(calls) == rollouts
+
+
 def test_shift_initialisation_takes_the_policys_action_at_the_last_predicted_state(workers):
     worker = workers("point_reach")
     policy = random_policy(worker, seed=2)

@@ -200,7 +200,8 @@ class ICemPi:
         settings = self.settings
         consult = policy is not None
         sequence = None
-        if consult and (settings.warm_start or settings.policy_samples):
+        # The policy's own sequence is a sample at every step, but seeds the mean only at t = 0.
+        if consult and (settings.policy_samples or (settings.warm_start and self.t == 0)):
             sequence = self.policy_rollout(state, observation, policy)
         if self.t == 0 and consult and settings.warm_start:
             self.planner.memory = self.planner.initial_memory(sequence)
