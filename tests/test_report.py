@@ -24,6 +24,13 @@ def test_worked_example_18_of_20_against_096_is_consistent():
     assert 80 <= comparison.runs_needed <= 250
 
 
+@pytest.mark.parametrize("successes, trials, published, needed", [(0, 1, 0.9, 1), (1, 1, 0.1, 1), (4, 5, 0.9, 77)])
+def test_runs_needed_for_few_episodes_and_large_effects(successes, trials, published, needed):
+    """0 of 1 against 0.9 is not significant yet; one more episode would be (Cohen's h 2.5), not a crash."""
+    comparison = statistics.compare_rate(successes, trials, published)
+    assert comparison.verdict == "consistent" and comparison.runs_needed == needed
+
+
 def test_a_clearly_lower_rate_is_below_and_needs_no_more_runs():
     comparison = statistics.compare_rate(5, 40, 0.81)
     assert comparison.verdict == "below" and comparison.p_value < 1e-6 and comparison.runs_needed is None
