@@ -209,7 +209,8 @@ def _comparison_text(group: Group) -> str:
         return c.test
     text = f"{c.verdict} ({c.test}, p={c.p_value:.2g})"
     if c.runs_needed:
-        text += f"; ~{c.runs_needed} {'episodes' if group.successes else 'runs'} to settle"
+        unit = "episode" if group.successes else "run"
+        text += f"; ~{c.runs_needed} {unit}{'' if c.runs_needed == 1 else 's'} to settle"
     return text
 
 
