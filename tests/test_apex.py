@@ -390,8 +390,15 @@ COMPARED = ("expert_return", "policy_return", "loss/first_training", "loss/secon
             "lambda/expert_mean", "dataset/steps", "weights_version")  # fmt: skip
 
 
-def test_iterations_report_every_phase_and_keep_the_window():
-    reports = run_locally(ApexProgram, trial())
+@pytest.mark.parametrize(
+    "window_counts, window, rollouts",
+    [
+        ("iterations", 2, [4, 8, 8]),  # W x n = 2 x 2 expert rollouts and their 4 relabeled episodes
+        ("episodes", 3, [4, 6, 6]),  # W x n = 3 x 2 episodes of either kind
+    ],
+)
+def test_iterations_report_every_phase_and_keep_the_window(window_counts, window, rollouts):
+    reports = run_locally(ApexProgram, trial(window=window, window_counts=window_counts))
     assert [r.step for r in reports] == [0, 1, 2] and reports[-1].done
     for index, report in enumerate(reports):
         m = report.metrics
@@ -403,13 +410,24 @@ def test_iterations_report_every_phase_and_keep_the_window():
             assert 0 <= m[f"lambda/{phase}_zero_fraction"] <= 1 and m[f"lambda/{phase}_max"] >= 0
         assert {"seconds/expert", "seconds/dagger", "seconds/training", "seconds/iteration", "core_minutes"} <= set(m)
         assert {a.path for a in report.artifacts} == {f"policy/policy_{index:04d}.npz", "apex_curves.png"}
-    # Window W x n = 3 x 2 rollouts of 10 steps: 4 rollouts per iteration, the oldest leave.
-    assert [r.metrics["dataset/rollouts"] for r in reports] == [4, 6, 6]
-    assert [r.metrics["dataset/steps"] for r in reports] == [40, 60, 60]
+    # Rollouts of 10 steps, 2 expert and 2 relabeled per iteration; the oldest leave.
+    assert [r.metrics["dataset/rollouts"] for r in reports] == rollouts
+    assert [r.metrics["dataset/steps"] for r in reports] == [10 * n for n in rollouts]
     weights = PolicyWeights.from_bytes(reports[-1].artifacts[0].data)
     assert weights.version == 6 and weights.task == "point_reach"
     summary = reports[-1].summary
     assert summary["final_policy_return"] == pytest.approx(np.mean([r.metrics["policy_return"] for r in reports]))
+
+
+def test_without_dagger_the_window_holds_w_times_n_expert_rollouts_either_way():
+    """BC adds only expert rollouts, so it holds half of DAgger's data when the window counts iterations."""
+    capacities = {
+        (dagger, counts): ApexProgram.window_capacity(trial(window=5, dagger=dagger, window_counts=counts).settings)
+        for dagger in (True, False)
+        for counts in ("iterations", "episodes")
+    }
+    assert capacities == {(True, "iterations"): 20, (True, "episodes"): 10, (False, "iterations"): 10,
+                          (False, "episodes"): 10}  # fmt: skip
 
 
 def test_relabeled_episodes_hold_the_experts_labels_at_the_policys_states():

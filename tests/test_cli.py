@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 import pytest
+import yaml
 from helpers import cli, write_sweep
 
 from orchestrator.cli import main
@@ -194,7 +195,6 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
     "sweep, first, last",
     [
         ("fetch_pick_place", "a5f5dd7184910803", "b51fb7a40058f900"),
-        ("apex_fetch", "7677980e0b9d8bb4", "848f08eb2c6baebe"),
         ("razer_bridge_maze", "d52a4c09b582765a", "df252c548e89626c"),
     ],
 )
@@ -203,6 +203,20 @@ def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, l
     trials. Setting the new field to anything else is a different trial."""
     trials = load_sweep(ROOT / "sweeps" / "paper" / f"{sweep}.yaml").trials
     assert (trials[0].key, trials[-1].key) == (first, last)
+
+
+def test_apex_trials_of_the_earlier_window_reading_keep_their_keys(tmp_path):
+    """APEX's window now counts iterations, so the shipped sweep's trials are new ones; with
+    `window_counts: episodes`, the earlier behaviour, --resume still finds the trials run before."""
+    sweep = yaml.safe_load((ROOT / "sweeps" / "paper" / "apex_fetch.yaml").read_text())
+    earlier = ("7677980e0b9d8bb4", "848f08eb2c6baebe")
+    shipped = load_sweep(ROOT / "sweeps" / "paper" / "apex_fetch.yaml").trials
+    assert shipped[0].key not in earlier and shipped[-1].key not in earlier
+    sweep["base"]["window_counts"] = "episodes"
+    path = tmp_path / "apex_fetch.yaml"
+    path.write_text(yaml.safe_dump(sweep, sort_keys=False))
+    trials = load_sweep(path).trials
+    assert (trials[0].key, trials[-1].key) == earlier
 
 
 def test_a_non_default_noise_release_is_another_trial(tmp_path):

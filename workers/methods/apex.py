@@ -21,8 +21,12 @@ completed one. Every switch of the chapter's ablations and baselines (Fig. 13, 1
 
 Choices where the thesis leaves room (see also workers/policy/*):
 
-* A *rollout* of the window is an expert or a relabeled episode; the dataset holds the latest
-  ``window x rollouts`` of them (Table 11 gives W per task; n from Table 10).
+* The window (Table 11: the latest W x n rollouts, n from Table 10) counts expert rollouts, and
+  the relabeled episodes of the same iterations stay with them: the dataset holds the last W
+  iterations' data. App. C.2: "in case of DAgger, the policy gets twice the amount of data as in
+  the case of behavioral cloning because in each iteration data from the expert and relabeled
+  data from the policy is added"; a window counting both kinds alike would hold the same amount
+  for both once full. ``window_counts: episodes`` is that other reading.
 * Without DAgger the second training still runs, on the expert data alone, so that every
   variant takes the same number of gradient steps per iteration (App. C.2).
 * The first iteration's expert is guided by the randomly initialised policy (Alg. 3 line 1;
@@ -35,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -102,7 +106,11 @@ class ApexSettings(MethodSettings, ExpertSwitches):
     rollouts: int | None = Field(None, ge=1)
     """Rollouts per iteration n: expert episodes and policy episodes each (default: Table 10 for the task)."""
     window: int | None = Field(None, ge=1)
-    """W: the policy trains on the latest W x n rollouts, expert and relabeled episodes (default: Table 11)."""
+    """W: the policy trains on the latest W x n rollouts (default: Table 11); see ``window_counts``."""
+    window_counts: Literal["iterations", "episodes"] = "iterations"
+    """What the window's W x n rollouts count: ``iterations``, the expert rollouts, with the relabeled episodes
+    of the same iterations kept beside them (DAgger holds twice BC's data, App. C.2); ``episodes``, expert and
+    relabeled episodes alike."""
     episode_steps: int | None = Field(None, ge=1)
     """Steps per episode (default: the task's; Humanoid standup 500 as in section 4.4)."""
     policy: PolicySettings = PolicySettings()
@@ -224,9 +232,15 @@ class ApexProgram(Program):
             env.close()
         self.n = settings.rollouts
         self.steps = settings.episode_steps
-        self.buffer = EpisodeBuffer(settings.window * settings.rollouts)
+        self.buffer = EpisodeBuffer(self.window_capacity(settings))
         self.weights: PolicyWeights | None = None
         self.history: dict[str, list[float]] = {}
+
+    @staticmethod
+    def window_capacity(settings: ApexSettings) -> int:
+        """Episodes the dataset holds: W x n, doubled for the relabeled episodes when counting iterations."""
+        per_iteration = 2 if settings.dagger and settings.window_counts == "iterations" else 1
+        return settings.window * settings.rollouts * per_iteration
 
     def _dataset(self) -> dict[str, np.ndarray]:
         transitions = self.buffer.transitions()
