@@ -542,6 +542,16 @@ def test_shipped_apex_sweeps_resolve_as_published():
         "apex-no-policy-samples", "apex-fixed-lambda",
     }  # fmt: skip
     assert len({t.config.seed for t in halfcheetah.trials}) >= 2
+    # Fig. 13's baselines as section 4.4 defines them (switches: guidance, adaptive, warm, samples, dagger).
+    switches = {
+        t.variant: (s.guidance, s.adaptive_lambda, s.warm_start, s.policy_samples, s.dagger)
+        for t in halfcheetah.trials
+        for s in [t.config.settings]
+    }
+    assert switches["apex"] == (True, True, True, True, True)
+    assert switches["icem-bc"] == (False, True, False, False, False)
+    assert switches["icem-dagger"] == (False, True, False, False, True)
+    assert switches["icem-pi-gps"] == (True, False, True, False, False)
     for loaded in (halfcheetah, load_sweep(ROOT / "sweeps" / "paper" / "apex_door_sparse.yaml")):
         for t in loaded.trials:
             settings = t.config.settings
