@@ -31,6 +31,7 @@ from workers.policy import (
     RelabelWorker,
     load_policy,
 )
+from workers.policy.expert import relabel_seed
 from workers.tasks import make_task
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -290,6 +291,25 @@ def test_relabeling_the_same_states_with_the_same_chunk_seed_gives_identical_lab
     np.testing.assert_array_equal(first.lambdas, again.lambdas)
     assert first.actions.shape == (12, 2) and not np.array_equal(first.actions, other.actions)
     assert derived_seed(0, 3, "relabel", 2) == derived_seed(0, 3, "relabel", 2) != derived_seed(0, 3, "relabel", 3)
+
+
+@pytest.mark.parametrize("restart", ["state", "chunk"])
+def test_relabeling_starts_alg_2_afresh_where_relabel_restart_says(restart, workers):
+    """`state`: every label is what a fresh expert (t = 0, warm start from the policy at that state) gives
+    there; `chunk`: only the first is, later states inherit the previous state's plan."""
+    worker = workers("point_reach")
+    policy = random_policy(worker)
+    episode = worker.policy_episode(7, 5, policy.weights).trajectory
+    states, observations = episode.sim_states, episode.observations[:-1]
+    settings = expert_settings("point_reach", relabel_restart=restart)
+    labels = worker.relabel(states.to_tree(), observations, policy.weights, 11, settings).actions
+    fresh = []
+    for k in range(len(labels)):
+        expert = worker.expert(settings, seed=0)
+        expert.reset(relabel_seed(11, k) if restart == "state" else 11)
+        fresh.append(expert.act(states[k], observations[k], policy).action)
+    same = [np.array_equal(label, alone) for label, alone in zip(labels, fresh)]
+    assert same == ([True] * 5 if restart == "state" else [True, False, False, False, False])
 
 
 @pytest.mark.parametrize("task_name", ["door_sparse", "fetch_pick_place_sparse"])

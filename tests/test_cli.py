@@ -205,14 +205,16 @@ def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, l
     assert (trials[0].key, trials[-1].key) == (first, last)
 
 
-def test_apex_trials_of_the_earlier_window_reading_keep_their_keys(tmp_path):
-    """APEX's window now counts iterations, so the shipped sweep's trials are new ones; with
-    `window_counts: episodes`, the earlier behaviour, --resume still finds the trials run before."""
+def test_apex_trials_of_the_earlier_readings_keep_their_keys(tmp_path):
+    """APEX's window now counts iterations and relabeling restarts at every state, so the shipped sweep's
+    trials are new ones; with `window_counts: episodes` and `relabel_restart: chunk`, the earlier behaviour,
+    --resume still finds the trials run before."""
     sweep = yaml.safe_load((ROOT / "sweeps" / "paper" / "apex_fetch.yaml").read_text())
     earlier = ("7677980e0b9d8bb4", "848f08eb2c6baebe")
     shipped = load_sweep(ROOT / "sweeps" / "paper" / "apex_fetch.yaml").trials
     assert shipped[0].key not in earlier and shipped[-1].key not in earlier
     sweep["base"]["window_counts"] = "episodes"
+    sweep["base"]["relabel_restart"] = "chunk"
     path = tmp_path / "apex_fetch.yaml"
     path.write_text(yaml.safe_dump(sweep, sort_keys=False))
     trials = load_sweep(path).trials

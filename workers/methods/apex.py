@@ -31,8 +31,12 @@ Choices where the thesis leaves room (see also workers/policy/*):
   variant takes the same number of gradient steps per iteration (App. C.2).
 * The first iteration's expert is guided by the randomly initialised policy (Alg. 3 line 1;
   with adaptive weights a weak policy is ignored until the main cost varies among elites).
-* Relabeling runs Alg. 2 over each chunk of consecutive states: the chunk's first state is
-  planned as t = 0 (warm start from the policy's rollout), later ones with shift-initialisation.
+* Relabeling plans every state as t = 0 of Alg. 2 (warm start from the policy's rollout from that
+  state, fresh elites): between two relabeled states the policy acted, not the expert, so the
+  expert's shifted plan from the previous state is no prior for the next (``relabel_restart:
+  chunk``, the reading before, runs Alg. 2 over each chunk of consecutive states as over an
+  episode). Per state the labels of the same state spread less over planner seeds and lie
+  closer to the policy (README, APEX).
 """
 
 from __future__ import annotations
@@ -118,7 +122,8 @@ class ApexSettings(MethodSettings, ExpertSwitches):
     dagger: bool = True
     """Relabel the states the policy visits with the expert and train on them too (Alg. 3 lines 9-12)."""
     relabel_chunk: int = Field(100, ge=1)
-    """Consecutive states per relabeling call (the unit of work spread over the relabel workers)."""
+    """Consecutive states per relabeling call (the unit of work spread over the relabel workers; see
+    ``relabel_restart`` for where Alg. 2 starts afresh)."""
     evaluation_episodes: int = Field(0, ge=0)
     """Extra policy episodes after each iteration's last training (fixed seeds), e.g. 20 for Table 9."""
     evaluate_every: int = Field(1, ge=1)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import time
 from functools import partial
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import gymnasium as gym
 import mujoco
@@ -76,6 +76,10 @@ class ExpertSwitches(BaseModel):
     """lambda_2 when not adaptive (not given in the thesis)."""
     epsilon: float = Field(1e-6, gt=0)
     """eps of eq. 17 (not given in the thesis)."""
+    relabel_restart: Literal["state", "chunk"] = "state"
+    """Where DAgger relabeling starts Alg. 2 afresh (t = 0: the mean from the policy's rollout, no elites kept):
+    at every relabeled ``state``, or only at the first state of each chunk of consecutive states (``chunk``:
+    later states inherit the previous state's shifted plan and elites)."""
 
     @property
     def uses_policy(self) -> bool:
@@ -311,15 +315,30 @@ def run_policy_episode(task: GroundTruthTask, env: gym.Env, policy: Policy, seed
     )
 
 
+def relabel_seed(chunk_seed: int, index: int) -> int:
+    """Planner seed of the ``index``-th state of a chunk relabeled state by state."""
+    return int(np.random.SeedSequence([chunk_seed, index]).generate_state(1)[0])
+
+
 def relabel_states(
     expert: ICemPi, states: SimStates, observations: np.ndarray, policy: Policy | None, seed: int
 ) -> RelabeledChunk:
-    """The expert's action at each of a run of consecutive states (Alg. 2 over them, t = 0 at the first)."""
+    """The expert's action at each of a run of consecutive states.
+
+    The states were visited by the policy, so the action taken between two of them is the policy's, not the
+    expert's. With ``relabel_restart: state`` each state is therefore a query without prior information and is
+    planned as t = 0 of Alg. 2 (section 4.3.1: "at time t = 0 where no prior information exists, the mean is
+    initialized from rolling out the trajectory with the policy"); with ``chunk`` Alg. 2 runs over the chunk
+    as over an episode, t = 0 at its first state only.
+    """
     started, cpu = time.perf_counter(), time.process_time()
+    each_state = expert.settings.relabel_restart == "state"
     expert.reset(seed)
     actions = np.empty((len(states), expert.task.action_dim))
     lambdas, spent = [], 0
     for k in range(len(states)):
+        if each_state:
+            expert.reset(relabel_seed(seed, k))
         info = expert.act(states[k], observations[k], policy)
         actions[k] = info.action
         lambdas.append(info.lambdas)
