@@ -123,7 +123,9 @@ class Summary(NamedTuple):
     """The trial summary metric that holds it (e.g. mean_return)."""
     mode: str
     best: int | None
-    """Index of the best group by the metric and mode."""
+    """Index of the best group by the metric and mode; None when several tie at the best value."""
+    tied: tuple[int, ...] = ()
+    """Indices of the groups that share the best value, when more than one does."""
 
 
 def _episodes(trial: TrialResult) -> int:
@@ -172,11 +174,14 @@ def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max", referenc
     ]
     groups.sort(key=lambda g: (g.task, _sort_labels(g.labels), g.variant or "", json.dumps(g.setting, sort_keys=True)))
     finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean)]
-    best = None
+    best, tied = None, ()
     if finite:
         pick = max if mode == "max" else min
-        best = pick(finite, key=lambda i: groups[i].mean)
-    return Summary(groups, metric, summary_key, mode, best)
+        value = pick(groups[i].mean for i in finite)
+        leaders = tuple(i for i in finite if groups[i].mean == value)
+        # A star on one of several equal groups (e.g. two 10/10 success rates) would rank what the data do not.
+        best, tied = (leaders[0], ()) if len(leaders) == 1 else (None, leaders)
+    return Summary(groups, metric, summary_key, mode, best, tied)
 
 
 def _sort_labels(labels: dict[str, str]) -> tuple:
@@ -246,6 +251,9 @@ def format_table(summary: Summary) -> str:
     notes = []
     if summary.best is not None and len(summary.groups) > 1:
         notes.append(f"* best by {metric} ({summary.mode})")
+    elif summary.tied:
+        value = _estimate_text(summary.groups[summary.tied[0]], metric).split(" ")[0]
+        notes.append(f"no single best by {metric}: {len(summary.tied)} configurations tie at {value}")
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:
         notes.append("published: " + "; ".join(sources) + "; tests one-sided in the direction of the difference, 5%")

@@ -121,11 +121,26 @@ def test_summary_intervals_follow_the_runs():
     assert group.mean == 2.0 and group.interval.low < 2.0 < group.interval.high and group.comparison is None
 
 
-def report_run(algorithm: str, value: float):
+@pytest.mark.parametrize(
+    ("values", "starred", "note"),
+    [
+        ({"icem": 1.0, "cem_mpc": 1.0}, [], "no single best by success: 2 configurations tie at 1.00"),
+        ({"icem": 1.0, "cem_mpc": 0.5}, ["icem"], "* best by success (max)"),
+    ],
+)
+def test_only_a_unique_best_configuration_is_starred(values, starred, note):
+    runs = [report_run(algorithm, value, "success_rate") for algorithm, value in values.items()]
+    table = report.format_table(report.summarize(runs, "success", references=[]))
+    rows = [line for line in table.splitlines() if line.startswith("point_reach")]
+    assert [row.split()[1] for row in rows if " *" in row] == starred
+    assert note in table
+
+
+def report_run(algorithm: str, value: float, key: str = "mean_return"):
     from orchestrator.tracking import TrialRun
 
     params = {"method": "mpc", "task": "point_reach", "seed": "0", "planner.algorithm": algorithm}
-    return TrialRun("id", "key", FINISHED, "name", params, {"algorithm": algorithm}, {"mean_return": value})
+    return TrialRun("id", "key", FINISHED, "name", params, {"algorithm": algorithm, "budget": "50"}, {key: value})
 
 
 def test_a_missing_reference_file_is_a_located_error(tmp_path):
