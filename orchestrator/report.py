@@ -252,7 +252,7 @@ def format_table(summary: Summary) -> str:
     if summary.best is not None and len(summary.groups) > 1:
         notes.append(f"* best by {metric} ({summary.mode})")
     elif summary.tied:
-        value = _estimate_text(summary.groups[summary.tied[0]], metric).split(" ")[0]
+        value = _number(summary.groups[summary.tied[0]].mean, metric)
         notes.append(f"no single best by {metric}: {len(summary.tied)} configurations tie at {value}")
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:

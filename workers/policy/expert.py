@@ -333,7 +333,8 @@ def relabel_states(
     """
     started, cpu = time.perf_counter(), time.process_time()
     each_state = expert.settings.relabel_restart == "state"
-    expert.reset(seed)
+    if not each_state:
+        expert.reset(seed)
     actions = np.empty((len(states), expert.task.action_dim))
     lambdas, spent = [], 0
     for k in range(len(states)):
