@@ -234,6 +234,7 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "noise_release": "2.1",
     "window_counts": "episodes",
     "relabel_restart": "chunk",
+    "reinitialize": False,
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name,
 at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a

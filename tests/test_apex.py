@@ -380,6 +380,26 @@ def test_policy_training_fits_and_weights_round_trip_without_pickle(tmp_path):
         PolicyWeights.from_bytes(checkpoint.to_bytes({"format": "something else"}))
 
 
+@pytest.mark.parametrize("reinitialize", [False, True])
+def test_a_training_continues_from_the_last_unless_reinitialize_says(reinitialize):
+    rng = np.random.default_rng(1)
+    observations = rng.normal(size=(400, 4))
+    dataset = {"observations": observations, "actions": np.tanh(observations[:, :2] * [1.0, -0.5])}
+    settings = {"gradient_steps": 300, "batch_size": 64, "reinitialize": reinitialize}
+    trainer = PolicyTrainer(3, settings, task="point_reach", obs_dim=4, action_dim=2)
+    first, second = trainer.train(dataset), trainer.train(dataset)
+    # Continuing, the second training's first batch is as well fitted as the end of the first; afresh it is
+    # as badly fitted as the first training's first batch was.
+    if reinitialize:
+        assert second.first_loss > 0.5 * first.first_loss > 2 * first.last_loss
+    else:
+        assert second.first_loss < 1.5 * first.last_loss < 0.5 * first.first_loss
+    assert second.weights.version == 2
+    again = PolicyTrainer(3, settings, task="point_reach", obs_dim=4, action_dim=2)
+    again.train(dataset)
+    np.testing.assert_array_equal(again.train(dataset).weights.arrays["w0"], second.weights.arrays["w0"])
+
+
 def test_trainer_threads_follow_its_cpus():
     assert PolicyTrainer(0, cpus=0.5).threads == 1 and PolicyTrainer(0, cpus=2).threads == 2
     roles = {r.name: r for r in ApexProgram.roles_for(trial(), 1, {"relabel": 3})}

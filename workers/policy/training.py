@@ -2,9 +2,12 @@
 
 MSE to the expert's actions plus l1 (1e-6) and l2 (1e-5) penalties on the
 weight matrices, Adam (lr 5e-4), batches of 1024 drawn with replacement,
-1000 gradient steps per training. The network and the optimiser are never
-reset: every training continues from the last one (only the input
-standardisation follows the current dataset).
+1000 gradient steps per training. By default the network and the optimiser
+are never reset: every training continues from the last one (only the input
+standardisation follows the current dataset). The thesis does not say
+whether the policy is re-initialised between APEX iterations;
+``reinitialize: true`` starts every training from a fresh network and
+optimiser instead (README, APEX, measures both).
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ class PolicySettings(BaseModel):
     """Samples per gradient step, drawn with replacement from the dataset."""
     gradient_steps: int = Field(1000, ge=1)
     """Gradient steps per training (Table 11 'iterations'); APEX trains twice per iteration."""
+    reinitialize: bool = False
+    """Start every training from a freshly initialised network and optimiser (seeded by the trainer's seed and
+    the training's index) instead of continuing from the last one; the thesis leaves this open."""
 
 
 class TrainReport(NamedTuple):
@@ -101,8 +107,20 @@ class PolicyTrainer:
                 raise ValueError(f"the policy is {self.obs_dim} -> {self.action_dim}, not {obs_dim} -> {action_dim}")
             return self.weights()
         self.obs_dim, self.action_dim = obs_dim, action_dim
-        sizes = layer_sizes(obs_dim, action_dim, self.settings.hidden)
-        torch.manual_seed(self.seed)
+        self._build_network(self.seed)
+        sampling_seed = int(np.random.SeedSequence([self.seed, 1]).generate_state(1)[0])
+        self.generator = torch.Generator().manual_seed(sampling_seed)
+        self.mean = np.zeros(obs_dim)
+        self.std = np.ones(obs_dim)
+        self.version = 0
+        return self.weights()
+
+    def _build_network(self, seed: int) -> None:
+        """A randomly initialised network (``seed``) and a fresh optimiser for it."""
+        import torch
+
+        sizes = layer_sizes(self.obs_dim, self.action_dim, self.settings.hidden)
+        torch.manual_seed(seed)
         layers: list[Any] = []
         for index, (n_in, n_out) in enumerate(zip(sizes[:-1], sizes[1:])):
             layers.append(torch.nn.Linear(n_in, n_out))
@@ -111,12 +129,6 @@ class PolicyTrainer:
         self.model = torch.nn.Sequential(*layers)
         self.linears = [layer for layer in self.model if isinstance(layer, torch.nn.Linear)]
         self.optimiser = torch.optim.Adam(self.model.parameters(), lr=self.settings.learning_rate)
-        sampling_seed = int(np.random.SeedSequence([self.seed, 1]).generate_state(1)[0])
-        self.generator = torch.Generator().manual_seed(sampling_seed)
-        self.mean = np.zeros(obs_dim)
-        self.std = np.ones(obs_dim)
-        self.version = 0
-        return self.weights()
 
     # ------------------------------------------------------------ weights
     def weights(self) -> PolicyWeights:
@@ -150,9 +162,11 @@ class PolicyTrainer:
         targets = torch.as_tensor(np.asarray(dataset["actions"]), dtype=torch.float32)
         if len(observations) == 0:
             raise ValueError("cannot train the policy on an empty dataset")
+        settings = self.settings
+        if settings.reinitialize and self.version > 0:
+            self._build_network(int(np.random.SeedSequence([self.seed, 2, self.version]).generate_state(1)[0]))
         self.mean, self.std = standardisation(observations)
         inputs = self._inputs(observations)
-        settings = self.settings
         steps = settings.gradient_steps if steps is None else steps
         losses = np.empty(steps)
         for step in range(steps):
