@@ -110,6 +110,26 @@ def test_pool_splits_batches_over_workers_without_changing_costs():
     np.testing.assert_array_equal(pooled.evaluate(state, actions), single.evaluate(state, actions))
 
 
+def test_pool_notices_a_worker_restarted_after_its_last_evaluation():
+    """A worker replaced between evaluations counts once, whether the next evaluation or the end-of-episode
+    check sees it first."""
+    task = make_task("point_reach")
+    remote = LocalRoleGroup("simulation", [SimulationWorker(task.name) for _ in range(2)])
+    pool = SimulationPool(task.name, None, remote)
+    env = task.make_env()
+    from workers.mpc import PlanningState
+
+    observation, _ = env.reset(seed=0)
+    state = PlanningState(observation, task.capture(env))
+    actions = np.zeros((4, 3, task.action_dim))
+    pool.evaluate(state, actions)
+    assert pool.check_restarts() == 0
+    remote.workers[1] = SimulationWorker(task.name)  # the service restarted it: a new process, a new incarnation
+    assert pool.check_restarts() == 1
+    pool.evaluate(state, actions)
+    assert pool.check_restarts() == 1
+
+
 def test_success_tasks_count_goal_steps():
     """goal_steps is the number of steps on which the environment reported its goal condition."""
     task = make_task("fetch_pick_place_sparse")

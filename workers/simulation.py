@@ -84,6 +84,10 @@ class SimulationWorker:
             raise RuntimeError("this simulation worker was built without ensemble settings")
         return self.ensemble.costs(state, actions, draws), self.incarnation
 
+    def current_incarnation(self) -> str:
+        """This process's incarnation (see ``incarnation``)."""
+        return self.incarnation
+
     def pid(self) -> int:
         """Process id (for fault-injection tests and diagnostics)."""
         return os.getpid()
@@ -155,11 +159,27 @@ class SimulationPool:
             parts.append(getattr(self.local, method)(sim, *local_chunk)[0])
         for i, call in calls:
             result, incarnation = call.result()
-            if self._incarnations[i] is not None and incarnation != self._incarnations[i]:
-                self.restarts += 1
-            self._incarnations[i] = incarnation
+            self._note_incarnation(i, incarnation)
             parts.append(result)
         return parts
+
+    def _note_incarnation(self, member: int, incarnation: str) -> None:
+        if self._incarnations[member] is not None and incarnation != self._incarnations[member]:
+            self.restarts += 1
+        self._incarnations[member] = incarnation
+
+    def check_restarts(self) -> int:
+        """Ask every remote worker for its incarnation; return ``restarts`` (the count so far).
+
+        A worker that died after its last evaluation is restarted by the service without any call failing;
+        without this check its loss would stay unnoticed until its next evaluation (never, at an episode's
+        end), and the failure would not reach the episode's metrics.
+        """
+        if self.remote is not None:
+            calls = [(i, self.remote.submit(i, "current_incarnation")) for i in range(self.remote.size)]
+            for i, call in calls:
+                self._note_incarnation(i, call.result())
+        return self.restarts
 
     def close(self) -> None:
         if self.local is not None:

@@ -250,7 +250,7 @@ class MpcProgram(Program):
             "simulated_steps_per_second": result.simulated_steps_per_second,
             "physics_steps_per_second": result.physics_steps_per_second,
             "episode_seconds": self.episode_seconds,
-            "simulation_worker_restarts": float(self.pool.restarts - self.restarts_at_episode_start),
+            "simulation_worker_restarts": float(self.pool.check_restarts() - self.restarts_at_episode_start),
         }
         if result.success is not None:
             metrics["success"] = float(result.success)
