@@ -89,6 +89,10 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+SPENDING_SWITCHES = ("population_decay", "elite_fraction", "keep_elites", "shift_elites")
+"""Switches that change how many trajectories a schedule spends; Table 4's rows assume the preset's values."""
+
+
 class PlannerConfig(BaseModel):
     """A planner of the CEM family; every field is a sweepable parameter."""
 
@@ -214,12 +218,22 @@ def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple
     budget-50 schedule. Other budgets take the iterations of the
     nearest listed budget below and the N whose total comes closest to the
     budget under the config's decay and elite reuse.
+
+    A Table 4 row holds for its algorithm's own decay and elite reuse; a
+    config that switches one of them (an ablation, Fig. 7) keeps the row's
+    iterations and gets the N that spends the same budget, so that variants
+    compare at equal trajectories per step.
     """
     table = ICEM_BUDGETS | CHAPTER_4_BUDGETS if algorithm == "icem" else CEM_BUDGETS
-    if budget in table:
+    preset = PRESETS.get(algorithm, {})
+    spends_as_tabled = all(getattr(config, name) == preset.get(name) for name in SPENDING_SWITCHES)
+    if budget in table and spends_as_tabled:
         return table[budget]
-    listed = sorted(table)
-    iterations = table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
+    if budget in table:
+        iterations = table[budget][0]
+    else:
+        listed = sorted(table)
+        iterations = table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
     best_population, best_gap = None, math.inf
     for population in range(max(config.elites, 2), budget + 1):
         trial = config.model_copy(update=dict(iterations=iterations, population=population))
