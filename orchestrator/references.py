@@ -48,10 +48,11 @@ class Reference(BaseModel):
     def matches(self, task: str, method: str, params: Mapping[str, str], metric: str) -> bool:
         if (self.task, self.method, self.metric) != (task, method, metric):
             return False
-        return all(_same(params.get(key), value) for key, value in self.match.items())
+        return all(same_param(params.get(key), value) for key, value in self.match.items())
 
 
-def _same(param: str | None, value: Any) -> bool:
+def same_param(param: str | None, value: Any) -> bool:
+    """Whether a run param (a string, as MLflow holds it) equals a value."""
     if value is None:
         return param in (None, "None")
     if param is None:

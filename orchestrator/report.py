@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from orchestrator import statistics  # noqa: E402
-from orchestrator.references import Reference, find  # noqa: E402
+from orchestrator.references import Reference, find, same_param  # noqa: E402
 from orchestrator.tracking import TrialRun  # noqa: E402
 from workers.methods import METHODS  # noqa: E402
 
@@ -132,11 +132,33 @@ def _episodes(trial: TrialResult) -> int:
     return int(float(trial.params.get("episodes", "1") or 1))
 
 
+def ablated_switches(task: str, params: dict[str, str]) -> list[str]:
+    """Planner switches of a run that differ from its algorithm's defaults (an ablation or addition, Fig. 7).
+
+    Table 3's figures are the full algorithms: a run that switches an improvement off (or adds one to
+    CEM_MPC) is not compared with them.
+    """
+    from workers.planning.config import PRESETS, PlannerConfig
+    from workers.tasks import make_task
+
+    algorithm = params.get("planner.algorithm")
+    if algorithm not in PRESETS:
+        return []
+    defaults = PlannerConfig(algorithm=algorithm).resolved(make_task(task).colored_noise_beta)
+    return [
+        name
+        for name in PRESETS[algorithm]
+        if f"planner.{name}" in params and not same_param(params[f"planner.{name}"], getattr(defaults, name))
+    ]
+
+
 def _group(task, method, labels, variant, setting, members, metric, summary_key, references) -> Group:
     values = np.array([m.values.get(summary_key, math.nan) for m in members], dtype=float)
     values = values[np.isfinite(values)]
     sem = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else 0.0
     reference = find(references, task, method, members[0].params, metric)
+    if reference is not None and "planner.algorithm" in reference.match and ablated_switches(task, members[0].params):
+        reference = None
     successes = None
     if metric in RATE_METRICS and len(values):
         episodes = [_episodes(m) for m in members if math.isfinite(m.values.get(summary_key, math.nan))]
@@ -344,7 +366,9 @@ def budget_figure(summary: Summary):
 def variant_figure(summary: Summary):
     """One bar per variant with its standard error, per task (the style of the thesis's Fig. 7 ablations)."""
     tasks = sorted({g.task for g in summary.groups})
-    figure, axes = plt.subplots(len(tasks), 1, figsize=(8, 0.5 + 0.45 * len(summary.groups)), squeeze=False)
+    longest = max(len(g.name()) for g in summary.groups)
+    width = max(8.0, 4.0 + 0.075 * longest)  # room for the labels, which name every switched setting
+    figure, axes = plt.subplots(len(tasks), 1, figsize=(width, 1.0 + 0.45 * len(summary.groups)), squeeze=False)
     for axis, task in zip(axes[:, 0], tasks):
         members = [g for g in summary.groups if g.task == task]
         names = [g.name() for g in members]

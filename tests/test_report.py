@@ -143,6 +143,29 @@ def report_run(algorithm: str, value: float, key: str = "mean_return"):
     return TrialRun("id", "key", FINISHED, "name", params, {"algorithm": algorithm, "budget": "50"}, {key: value})
 
 
+@pytest.mark.parametrize(
+    ("switched", "compared"),
+    [
+        ({}, True),  # the full algorithm, every switch as its defaults
+        ({"planner.keep_elites": "False"}, False),  # iCEM with an improvement removed (Fig. 7)
+        ({"planner.noise_beta": "0.0"}, False),  # white noise instead of the task's beta
+        ({"planner.noise_release": "1.1"}, True),  # not a switch of the algorithm
+    ],
+)
+def test_ablations_are_not_compared_with_the_full_algorithms_published_figure(tmp_path, switched, compared):
+    from workers.planning.config import PlannerConfig
+    from workers.tasks import make_task
+
+    full = PlannerConfig(algorithm="icem").resolved(make_task("point_reach").colored_noise_beta)
+    run = report_run("icem", -4.0)
+    run.params.update({f"planner.{name}": str(getattr(full, name)) for name in ("keep_elites", "noise_beta")})
+    run.params.update({"planner.budget": "50"} | switched)
+    (tmp_path / "paper.yaml").write_text(REFERENCE)
+    references = load_references(tmp_path / "paper.yaml")
+    (group,) = report.summarize([run, run], "episode_return", references=references).groups
+    assert (group.reference is not None) == compared
+
+
 def test_a_missing_reference_file_is_a_located_error(tmp_path):
     sweep = tmp_path / "s.yaml"
     sweep.write_text("name: s\ntask: point_reach\nreference: nowhere.yaml\n")
