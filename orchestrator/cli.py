@@ -374,15 +374,17 @@ def cmd_report(args) -> int:
     from workers.methods import METHODS
 
     runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
+    planned = None
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references
+        planned = {trial.key for trial in loaded.trials}
     else:  # by name: the metric the sweep file named when it ran (recorded on the sweep's run)
         from orchestrator.references import THESIS, load_references
 
         method = runs[0].params.get("method", "mpc") if runs else "mpc"
         metric, mode = _recorded_metric(tracker, parent.run_id) or (next(iter(METHODS[method].metrics)), "max")
         references = load_references(THESIS)
-    summary = report.summarize(runs, metric, mode, references)
+    summary = report.summarize(runs, metric, mode, references, planned)
     print(report.format_table(summary))
     output = args.output or Path("reports") / name
     program = METHODS[summary.groups[0].method] if summary.groups else None

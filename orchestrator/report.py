@@ -177,8 +177,19 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
                  statistics.iqm_interval(values), successes, reference, comparison)  # fmt: skip
 
 
-def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max", references: list[Reference] = ()) -> Summary:
-    """Group finished trial runs by configuration, summarise the sweep's metric, test it against the references."""
+def summarize(
+    runs: Iterable[TrialRun],
+    metric: str,
+    mode: str = "max",
+    references: list[Reference] = (),
+    planned: set[str] | None = None,
+) -> Summary:
+    """Group finished trial runs by configuration, summarise the sweep's metric, test it against the references.
+
+    ``planned``: the trial keys of the sweep's current plan. A resumed sweep whose code resolves a configuration
+    differently (a new key) runs it again under the same parent; where a configuration and seed has a planned
+    run, its other runs are left out, so each seed counts once, as the current code runs it.
+    """
     results = [result_from_run(run) for run in runs]
     method = results[0].method if results else "mpc"
     program = METHODS.get(method)
@@ -190,6 +201,10 @@ def summarize(runs: Iterable[TrialRun], metric: str, mode: str = "max", referenc
         key = (result.task, result.method, tuple(result.labels.items()), result.variant or "",
                json.dumps(setting, sort_keys=True))  # fmt: skip
         grouped[key].append(result)
+    if planned is not None:
+        for key, members in grouped.items():
+            current = {m.seed for m in members if m.trial_key in planned}
+            grouped[key] = [m for m in members if m.trial_key in planned or m.seed not in current]
     groups = [
         _group(task, method_name, labels, variant, json.loads(setting), members, metric, summary_key, list(references))
         for (task, method_name, labels, variant, setting), members in grouped.items()

@@ -561,7 +561,10 @@ class SweepScheduler:
         from pathlib import Path
 
         runs = [r for r in self.tracker.trial_runs(parent_id) if r.status == FINISHED]
-        summary = report.summarize(runs, self.sweep.metric_name(), self.sweep.metric.mode, self.loaded.references)
+        planned = {trial.key for trial in self.loaded.trials}
+        summary = report.summarize(
+            runs, self.sweep.metric_name(), self.sweep.metric.mode, self.loaded.references, planned
+        )
         table = report.format_table(summary)
         histories = report_histories(self.tracker, runs, self.program)
         with tempfile.TemporaryDirectory() as directory:

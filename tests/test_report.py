@@ -166,6 +166,21 @@ def test_ablations_are_not_compared_with_the_full_algorithms_published_figure(tm
     assert (group.reference is not None) == compared
 
 
+def test_a_seed_rerun_under_the_current_plan_replaces_its_stale_run():
+    """A resumed sweep re-ran seed 0 under a new key; seed 1 has only its earlier run."""
+    from orchestrator.tracking import TrialRun
+
+    def run(key: str, seed: int, value: float) -> TrialRun:
+        params = {"method": "mpc", "task": "point_reach", "seed": str(seed), "planner.algorithm": "icem"}
+        return TrialRun(key, key, FINISHED, key, params, {"algorithm": "icem", "budget": "50"}, {"mean_return": value})
+
+    runs = [run("stale0", 0, 1.0), run("new0", 0, 3.0), run("old1", 1, 5.0)]
+    (group,) = report.summarize(runs, "episode_return", planned={"new0", "new1"}).groups
+    assert sorted(t.trial_key for t in group.trials) == ["new0", "old1"] and group.mean == 4.0
+    (everything,) = report.summarize(runs, "episode_return").groups
+    assert everything.n == 3
+
+
 def test_a_missing_reference_file_is_a_located_error(tmp_path):
     sweep = tmp_path / "s.yaml"
     sweep.write_text("name: s\ntask: point_reach\nreference: nowhere.yaml\n")
