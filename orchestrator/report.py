@@ -396,8 +396,8 @@ def variant_figure(summary: Summary):
             axis.legend(fontsize=8)
         axis.set_yticks(positions, names)
         axis.invert_yaxis()
-        axis.set_xlabel(summary.metric.replace("_", " "))
-        axis.set_title(f"{task}: variants (mean, 95% interval over seeds)")
+        axis.set_xlabel(f"{summary.metric.replace('_', ' ')} (mean, 95% interval over seeds)")
+        axis.set_title(task)
         axis.grid(alpha=0.3, axis="x")
     figure.tight_layout()
     return figure
