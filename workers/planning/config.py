@@ -229,11 +229,9 @@ def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple
     spends_as_tabled = all(getattr(config, name) == preset.get(name) for name in SPENDING_SWITCHES)
     if budget in table and spends_as_tabled:
         return table[budget]
-    if budget in table:
-        iterations = table[budget][0]
-    else:
-        listed = sorted(table)
-        iterations = table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
+    # The row of the budget itself when listed, otherwise of the nearest listed below.
+    listed = sorted(table)
+    iterations = table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
     best_population, best_gap = None, math.inf
     for population in range(max(config.elites, 2), budget + 1):
         trial = config.model_copy(update=dict(iterations=iterations, population=population))
