@@ -344,19 +344,34 @@ def cmd_status(args) -> int:
     return 0
 
 
-def _recorded_metric(tracker, run_id: str) -> tuple[str, str] | None:
-    """(metric name, mode) from the sweep file recorded on a sweep's run, if it names one."""
+def _recorded_sweep(tracker, run_id: str) -> dict:
+    """The sweep file recorded on a sweep's run, parsed (empty when absent or unreadable)."""
     import yaml
 
     text = tracker.recorded_sweep(run_id)
     try:
         recorded = yaml.safe_load(text) if text else None
     except yaml.YAMLError:
-        return None
-    metric = recorded.get("metric") if isinstance(recorded, dict) else None
+        return {}
+    return recorded if isinstance(recorded, dict) else {}
+
+
+def _recorded_metric(recorded: dict) -> tuple[str, str] | None:
+    """(metric name, mode) of a recorded sweep file, if it names one."""
+    metric = recorded.get("metric")
     if not isinstance(metric, dict) or not isinstance(metric.get("name"), str):
         return None
     return metric["name"], str(metric.get("mode", "max"))
+
+
+def _recorded_pairing(recorded: dict):
+    """The report's pairing of variants with baselines, as a recorded sweep file named it."""
+    from orchestrator.report import Pairing
+
+    baseline = recorded.get("baseline") or []
+    baselines = [baseline] if isinstance(baseline, str) else [b for b in baseline if isinstance(b, str)]
+    parameters = recorded.get("parameters")
+    return Pairing(tuple(baselines), tuple(parameters) if isinstance(parameters, dict) else ()) if baselines else None
 
 
 def cmd_report(args) -> int:
@@ -378,13 +393,16 @@ def cmd_report(args) -> int:
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references
         planned = {trial.key for trial in loaded.trials}
-    else:  # by name: the metric the sweep file named when it ran (recorded on the sweep's run)
+        pairing = report.pairing(loaded.sweep)
+    else:  # by name: the metric and baselines the sweep file named when it ran (recorded on the sweep's run)
         from orchestrator.references import THESIS, load_references
 
         method = runs[0].params.get("method", "mpc") if runs else "mpc"
-        metric, mode = _recorded_metric(tracker, parent.run_id) or (next(iter(METHODS[method].metrics)), "max")
+        recorded = _recorded_sweep(tracker, parent.run_id)
+        metric, mode = _recorded_metric(recorded) or (next(iter(METHODS[method].metrics)), "max")
+        pairing = _recorded_pairing(recorded)
         references = load_references(THESIS)
-    summary = report.summarize(runs, metric, mode, references, planned)
+    summary = report.summarize(runs, metric, mode, references, planned, pairing)
     print(report.format_table(summary))
     output = args.output or Path("reports") / name
     program = METHODS[summary.groups[0].method] if summary.groups else None

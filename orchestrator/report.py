@@ -69,6 +69,29 @@ def result_from_run(run: TrialRun) -> TrialResult:
     )
 
 
+class Pairing(NamedTuple):
+    """Which variants the others are compared with, seed by seed (a sweep's ``baseline``)."""
+
+    baselines: tuple[str, ...]
+    """Variant names; a configuration is compared with the first whose task and labels (algorithm, budget, ...)
+    are its own."""
+    grid_keys: tuple[str, ...] = ()
+    """The sweep's parameters: a configuration meets its baseline at the same grid point."""
+
+
+def pairing(sweep) -> Pairing | None:
+    """The pairing a sweep asks for (its ``baseline``), or None."""
+    return Pairing(tuple(sweep.baseline), tuple(sweep.parameters)) if sweep.baseline else None
+
+
+class PairedComparison(NamedTuple):
+    """A configuration against its baseline on the seeds both ran."""
+
+    baseline: str
+    """The baseline variant's name."""
+    test: statistics.PairedTest
+
+
 class Group(NamedTuple):
     """The trials of one configuration (all its seeds) and what they say about the sweep's metric."""
 
@@ -93,6 +116,8 @@ class Group(NamedTuple):
     """The published figure for this configuration, if there is one."""
     comparison: statistics.Comparison | None
     """The test of the result against the reference."""
+    paired: PairedComparison | None = None
+    """The comparison with the sweep's baseline variant on the seeds both ran."""
 
     @property
     def n(self) -> int:
@@ -126,6 +151,8 @@ class Summary(NamedTuple):
     """Index of the best group by the metric and mode; None when several tie at the best value."""
     tied: tuple[int, ...] = ()
     """Indices of the groups that share the best value, when more than one does."""
+    baselines: tuple[str, ...] = ()
+    """The sweep's baseline variants, when it names any (each group then carries its paired comparison)."""
 
 
 def _episodes(trial: TrialResult) -> int:
@@ -183,8 +210,11 @@ def summarize(
     mode: str = "max",
     references: list[Reference] = (),
     planned: set[str] | None = None,
+    pairing: Pairing | None = None,
 ) -> Summary:
     """Group finished trial runs by configuration, summarise the sweep's metric, test it against the references.
+
+    ``pairing``: compare each variant with its baseline seed by seed (see :class:`Pairing`).
 
     ``planned``: the trial keys of the sweep's current plan. A resumed sweep whose code resolves a configuration
     differently (a new key) runs it again under the same parent; where a configuration and seed has a planned
@@ -210,6 +240,8 @@ def summarize(
         for (task, method_name, labels, variant, setting), members in grouped.items()
     ]
     groups.sort(key=lambda g: (g.task, _sort_labels(g.labels), g.variant or "", json.dumps(g.setting, sort_keys=True)))
+    if pairing is not None:
+        groups = [group._replace(paired=_paired(group, groups, pairing, summary_key)) for group in groups]
     finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean)]
     best, tied = None, ()
     if finite:
@@ -218,7 +250,38 @@ def summarize(
         leaders = tuple(i for i in finite if groups[i].mean == value)
         # A star on one of several equal groups (e.g. two 10/10 success rates) would rank what the data do not.
         best, tied = (leaders[0], ()) if len(leaders) == 1 else (None, leaders)
-    return Summary(groups, metric, summary_key, mode, best, tied)
+    return Summary(groups, metric, summary_key, mode, best, tied, pairing.baselines if pairing else ())
+
+
+def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: str) -> PairedComparison | None:
+    """``group`` against its baseline on their shared seeds; None for a baseline or where none matches."""
+    if group.variant in pairing.baselines:
+        return None
+
+    def point(g: Group) -> dict[str, Any]:
+        return {key: g.setting.get(key) for key in pairing.grid_keys}
+
+    for name in pairing.baselines:
+        for baseline in groups:
+            if (baseline.variant, baseline.task, baseline.labels, point(baseline)) != (
+                name, group.task, group.labels, point(group)
+            ):
+                continue
+            mine, theirs = _per_seed(group, summary_key), _per_seed(baseline, summary_key)
+            seeds = sorted(mine.keys() & theirs.keys())
+            test = statistics.compare_paired([mine[s] for s in seeds], [theirs[s] for s in seeds])
+            return PairedComparison(name, test)
+    return None
+
+
+def _per_seed(group: Group, summary_key: str) -> dict[int, float]:
+    """The group's metric by seed (the mean where a seed ran more than once)."""
+    by_seed: dict[int, list[float]] = defaultdict(list)
+    for trial in group.trials:
+        value = trial.values.get(summary_key, math.nan)
+        if math.isfinite(value):
+            by_seed[trial.seed].append(value)
+    return {seed: float(np.mean(values)) for seed, values in by_seed.items()}
 
 
 def _sort_labels(labels: dict[str, str]) -> tuple:
@@ -256,6 +319,22 @@ def _comparison_text(group: Group) -> str:
     return text
 
 
+def _paired_text(group: Group, summary: Summary) -> str:
+    if group.variant in summary.baselines:
+        return "baseline"
+    if group.paired is None:
+        return "-"
+    name, t = group.paired.baseline, group.paired.test
+    difference = f"{t.difference:+.2f}" if summary.metric in RATE_METRICS else f"{t.difference:+.4g}"
+    if t.discordant is not None:
+        detail = f"McNemar exact, {t.discordant[0]} gained : {t.discordant[1]} lost of {t.pairs} seeds"
+    else:
+        detail = f"{t.test}, {t.pairs} seed{'' if t.pairs == 1 else 's'}"
+    if math.isfinite(t.p_value):
+        detail += f", p={t.p_value:.2g}"
+    return f"{difference} vs {name} ({detail})"
+
+
 def _estimate_text(group: Group, metric: str) -> str:
     low, high = group.interval.low, group.interval.high
     text = _number(group.mean, metric)
@@ -270,6 +349,8 @@ def format_table(summary: Summary) -> str:
     """A plain-text table, one line per configuration: estimate with 95% interval, IQM, the thesis, the test."""
     metric = summary.metric
     header = ("task", "configuration", "n", f"{metric} [95% CI]", "IQM", "s/step", "published", "vs published")
+    if summary.baselines:
+        header += ("vs baseline (paired seeds)",)
     rows = [header]
     for index, g in enumerate(summary.groups):
         seconds = g.value("mean_planning_seconds_per_step")
@@ -281,7 +362,7 @@ def format_table(summary: Summary) -> str:
             g.task, g.name(), str(g.n), estimate, iqm,
             "-" if seconds is None else f"{seconds:.3f}",
             _published_text(g, metric), _comparison_text(g),
-        ))  # fmt: skip
+        ) + ((_paired_text(g, summary),) if summary.baselines else ()))  # fmt: skip
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip() for row in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
@@ -294,6 +375,8 @@ def format_table(summary: Summary) -> str:
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:
         notes.append("published: " + "; ".join(sources) + "; tests one-sided in the direction of the difference, 5%")
+    if summary.baselines:
+        notes.append("vs baseline: mean difference over the seeds both ran; tests two-sided")
     return "\n".join(lines + notes)
 
 
@@ -310,7 +393,8 @@ def to_csv(summary: Summary) -> str:
         ["task", "method", *label_keys, "variant", *setting_keys, "trials", f"{m}_mean", f"{m}_sem",
          f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes", "episodes",
          "seconds_per_step", "published", "published_spread", "published_runs", "published_source", "verdict",
-         "test", "p_value", "runs_to_settle", "best"]
+         "test", "p_value", "runs_to_settle", "best", "paired_baseline", "paired_seeds", f"paired_{m}_difference",
+         "paired_test", "paired_p_value"]
     )  # fmt: skip
 
     def cell(value) -> str:
@@ -328,9 +412,17 @@ def to_csv(summary: Summary) -> str:
              cell(g.value("mean_planning_seconds_per_step")),
              cell(r.value if r else None), cell(r.spread if r else None), r.runs if r and r.runs else "",
              r.source if r else "", c.verdict if c else "", c.test if c else "", cell(c.p_value if c else None),
-             c.runs_needed if c and c.runs_needed else "", int(index == summary.best)]
+             c.runs_needed if c and c.runs_needed else "", int(index == summary.best),
+             *_paired_cells(g, cell)]
         )  # fmt: skip
     return buffer.getvalue()
+
+
+def _paired_cells(group: Group, cell) -> list[Any]:
+    if group.paired is None:
+        return ["", "", "", "", ""]
+    t = group.paired.test
+    return [group.paired.baseline, t.pairs, cell(t.difference), t.test, cell(t.p_value)]
 
 
 def _error_bars(groups: list[Group]) -> np.ndarray:

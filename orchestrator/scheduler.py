@@ -563,7 +563,8 @@ class SweepScheduler:
         runs = [r for r in self.tracker.trial_runs(parent_id) if r.status == FINISHED]
         planned = {trial.key for trial in self.loaded.trials}
         summary = report.summarize(
-            runs, self.sweep.metric_name(), self.sweep.metric.mode, self.loaded.references, planned
+            runs, self.sweep.metric_name(), self.sweep.metric.mode, self.loaded.references, planned,
+            report.pairing(self.sweep),
         )
         table = report.format_table(summary)
         histories = report_histories(self.tracker, runs, self.program)

@@ -18,6 +18,9 @@ effects.
   the reference gives no spread). Tests are one-sided in the direction of the
   observed difference, at the 5% level: ``below`` or ``above`` when the
   difference is significant, ``consistent`` when it is not.
+* Variants against a baseline on the same seeds (a sweep's ``baseline``):
+  McNemar's exact test for one success flag per seed, the paired t-test
+  otherwise; two-sided.
 * Runs to settle: for a comparison that is not significant, how many runs
   (episodes, for rates) a one-sided test at 5% needs to detect the observed
   difference with 80% power.
@@ -164,3 +167,37 @@ def compare_mean(values: np.ndarray, published: float, spread: float | None, spr
         needed = int(math.ceil(TTestPower().solve_power(effect_size=effect, alpha=ALPHA, power=POWER,
                                                         alternative="larger")))  # fmt: skip
     return Comparison(verdict, test, p_value, needed)
+
+
+class PairedTest(NamedTuple):
+    """Two configurations measured on the same seeds, compared seed by seed."""
+
+    pairs: int
+    difference: float
+    """Mean over the shared seeds of (configuration - baseline)."""
+    test: str
+    p_value: float
+    """Two-sided: which way an ablation goes is the question, not an assumption."""
+    discordant: tuple[int, int] | None = None
+    """McNemar: (seeds only the configuration succeeded on, seeds only the baseline succeeded on)."""
+
+
+def compare_paired(values: np.ndarray, baseline: np.ndarray) -> PairedTest:
+    """Paired test of per-seed values against the baseline's on the same seeds.
+
+    Success flags (every value 0 or 1: one episode per seed) get McNemar's exact test, the binomial test of
+    the discordant seeds: seeds where both succeed or both fail say nothing about the difference, and with
+    paired seeds (the same start states) the test needs far fewer episodes than comparing two rates. Other
+    values (returns, rates over several episodes) get the paired t-test.
+    """
+    values, baseline = np.asarray(values, dtype=float), np.asarray(baseline, dtype=float)
+    differences = values - baseline
+    n = len(differences)
+    mean = float(differences.mean()) if n else math.nan
+    if n and np.isin(values, (0.0, 1.0)).all() and np.isin(baseline, (0.0, 1.0)).all():
+        gained, lost = int(np.sum(differences > 0)), int(np.sum(differences < 0))
+        p_value = float(stats.binomtest(gained, gained + lost, 0.5).pvalue) if gained + lost else 1.0
+        return PairedTest(n, mean, "McNemar exact", p_value, (gained, lost))
+    if n < 2 or np.ptp(differences) == 0:
+        return PairedTest(n, mean, "too few pairs to test" if n < 2 else "paired t-test undefined", math.nan)
+    return PairedTest(n, mean, "paired t-test", float(stats.ttest_rel(values, baseline).pvalue))

@@ -32,6 +32,7 @@ from pydantic import (
     Field,
     SerializeAsAny,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -169,6 +170,11 @@ class Sweep(_UserModel):
     """Seeds, as a list or as {first, count}; every configuration runs once per seed."""
     metric: Metric = Metric()
     """The figure summarising each configuration in reports."""
+    baseline: list[str] = []
+    """Variants the others are compared with seed by seed in reports (a name or a list): each configuration
+    meets the first listed baseline of its own task, labels (algorithm, budget) and grid point on the seeds both
+    ran, e.g. [icem, cem_mpc] for ablations of both. Success flags get McNemar's exact test, returns the paired
+    t-test."""
     resources: Resources = Resources()
     """CPU and worker layout of each trial."""
     retries: int = Field(1, ge=0, le=10)
@@ -212,6 +218,21 @@ class Sweep(_UserModel):
         if len(set(names)) != len(names):
             raise ValueError(f"variant names must differ, got {names}")
         return variants
+
+    @field_validator("baseline", mode="before")
+    @classmethod
+    def _one_baseline_is_a_list(cls, baseline: Any) -> Any:
+        return [baseline] if isinstance(baseline, str) else baseline
+
+    @field_validator("baseline")
+    @classmethod
+    def _baselines_are_variants(cls, baseline: list[str], info: ValidationInfo) -> list[str]:
+        names = [variant.get("name") for variant in info.data.get("variants") or []]
+        unknown = [name for name in baseline if name not in names]
+        if unknown:
+            known = ", ".join(map(str, names)) if names else "none (the sweep has no variants)"
+            raise ValueError(f"baseline {unknown[0]!r} is not a variant of this sweep; its variants: {known}")
+        return baseline
 
     @property
     def program(self) -> type[Program]:

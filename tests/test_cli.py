@@ -102,6 +102,11 @@ BAD_SWEEPS = {
         (3, "variants"),
         "needs a 'name'",
     ),
+    "baseline_not_a_variant": (
+        "name: x\ntask: point_reach\nbaseline: ful\nvariants:\n  - name: full\n  - name: no-elites\n",
+        (3, "baseline"),
+        "baseline 'ful' is not a variant of this sweep; its variants: full, no-elites",
+    ),
     "too_many_trials": (
         "name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n"
         "  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n",

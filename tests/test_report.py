@@ -257,3 +257,70 @@ def test_mbrl_report_curves_show_coverage_where_the_task_logs_it():
 
     assert panels({"id": logged}) == ["episode_return", "coverage"]
     assert panels({"id": {"episode_return": logged["episode_return"]}}) == ["episode_return"]
+
+
+def test_a_paired_success_comparison_counts_only_the_seeds_where_the_variants_disagree():
+    variant = np.array([1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0])
+    baseline = np.array([1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 1, 0])
+    test = statistics.compare_paired(variant, baseline)
+    # 1 seed gained, 8 lost: the exact binomial test of 1 in 9 at one half, two-sided: 2 * 10 / 512.
+    assert test.test == "McNemar exact" and test.discordant == (1, 8) and test.pairs == 12
+    assert test.p_value == pytest.approx(20 / 512) and test.difference == pytest.approx(-7 / 12)
+
+
+def test_paired_returns_get_the_paired_t_test():
+    variant, baseline = np.array([10.0, 12.0, 15.0, 11.0]), np.array([9.0, 10.0, 14.0, 8.0])
+    test = statistics.compare_paired(variant, baseline)
+    from scipy import stats
+
+    assert test.test == "paired t-test" and test.discordant is None
+    assert test.p_value == pytest.approx(stats.ttest_rel(variant, baseline).pvalue) and test.difference == 1.75
+
+
+def variant_run(variant: str, algorithm: str, seed: int, value: float, key: str = "mean_return"):
+    from orchestrator.tracking import TAG_VARIANT, TrialRun
+
+    params = {"method": "mpc", "task": "point_reach", "seed": str(seed), "planner.algorithm": algorithm}
+    tags = {"algorithm": algorithm, "budget": "50", TAG_VARIANT: variant}
+    return TrialRun(f"{variant}{seed}", f"{variant}{seed}", FINISHED, variant, params, tags, {key: value})
+
+
+def test_variants_meet_the_baseline_of_their_own_algorithm_on_shared_seeds():
+    runs = [
+        *(variant_run("icem", "icem", s, v) for s, v in enumerate([100.0, 200.0, 300.0])),
+        *(variant_run("no-elites", "icem", s, v) for s, v in enumerate([90.0, 170.0, 290.0, 1e6])),  # seed 3 unpaired
+        *(variant_run("cem_mpc", "cem_mpc", s, v) for s, v in enumerate([10.0, 20.0])),
+        *(variant_run("cem_mpc+clip", "cem_mpc", s, v) for s, v in enumerate([15.0, 30.0])),
+    ]
+    summary = report.summarize(runs, "episode_return", pairing=report.Pairing(("icem", "cem_mpc")))
+    paired = {g.variant: g.paired for g in summary.groups}
+    assert paired["icem"] is None and paired["cem_mpc"] is None
+    assert paired["no-elites"].baseline == "icem" and paired["no-elites"].test.pairs == 3
+    assert paired["no-elites"].test.difference == pytest.approx(-50 / 3)
+    assert paired["cem_mpc+clip"].baseline == "cem_mpc" and paired["cem_mpc+clip"].test.difference == 7.5
+    table = report.format_table(summary)
+    assert "-16.67 vs icem (paired t-test, 3 seeds, p=" in table and "+7.5 vs cem_mpc" in table
+    assert report.format_table(report.summarize(runs, "episode_return")).count("vs icem") == 0
+
+
+def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
+    """``icemlab report NAME`` reads the baseline from the sweep file recorded when it ran."""
+    text = "name: paired\ntask: point_reach\nmetric: {name: success}\nbaseline: full\n"
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("paired", "paired", "hash", text, {}, "dev")
+    from orchestrator.tracking import TAG_VARIANT
+
+    for variant, flags in {"full": [1, 1, 1, 0], "ablated": [0, 1, 0, 0]}.items():
+        for seed, flag in enumerate(flags):
+            params = {"method": "mpc", "task": "point_reach", "seed": seed, "planner.algorithm": "icem",
+                      "planner.budget": 50, "episodes": 1}  # fmt: skip
+            tags = {"method": "mpc", "task": "point_reach", "algorithm": "icem", "budget": "50", TAG_VARIANT: variant}
+            run_id = tracker.start_trial(parent, f"{variant}{seed}", f"{variant}/{seed}", params, tags)
+            tracker.end_trial(run_id, FINISHED, {"success_rate": float(flag)})
+    tracker.end_sweep(parent, FINISHED, {})
+    result = cli("report", "paired", "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "-0.50 vs full (McNemar exact, 0 gained : 2 lost of 4 seeds, p=0.5)" in result.stdout
+    rows = {row["variant"]: row for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}
+    assert rows["ablated"]["paired_baseline"] == "full" and rows["ablated"]["paired_test"] == "McNemar exact"
+    assert rows["full"]["paired_baseline"] == ""

@@ -63,14 +63,17 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
         "landing",
         base={"planner": {"budget": 50, "horizon": 10}, "max_steps": 8, "episodes": 2, "round_steps": 5},
         parameters={"algorithm": {"values": ["icem", "cem_mpc"]}},
+        variants=[{"name": "full"}, {"name": "short", "planner.horizon": 5}],
+        baseline="full",
     )
     result = cli("run", str(sweep), "--quiet", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    assert "point_reach" in result.stdout  # the summary table
+    table = [line for line in result.stdout.splitlines() if line.startswith("point_reach")]  # the summary table
+    assert len(table) == 4 and sum("vs full (too few pairs to test, 1 seed)" in line for line in table) == 2
 
     parent, children = sweep_runs(default_tracking_uri(tmp_path), "landing")
     assert parent.status == FINISHED
-    assert {c.status for c in children} == {FINISHED} and len(children) == 2
+    assert {c.status for c in children} == {FINISHED} and len(children) == 4
     assert {c.trial_key for c in children} == {t.key for t in load_sweep(sweep).trials}
     for child in children:
         assert child.params["task"] == "point_reach" and child.params["planner.budget"] == "50"
