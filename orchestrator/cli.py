@@ -591,7 +591,15 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     args = build_parser().parse_args(argv)
     secure_local_ray(args)
-    return COMMANDS[args.command](args)
+    try:
+        status = COMMANDS[args.command](args)
+        sys.stdout.flush()  # inside the handler: a closed pipe may show only when buffered output is written
+        return status
+    except BrokenPipeError:
+        # The reader of our output went away (`icemlab validate ... | head`): stop quietly, as Unix tools do.
+        # stdout is pointed at /dev/null so that flushing it at exit raises nothing more.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, what a shell reports for a tool ended by a closed pipe
 
 
 if __name__ == "__main__":

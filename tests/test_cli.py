@@ -27,6 +27,18 @@ def test_every_command_has_help(command, capsys):
     assert f"usage: icemlab {command}" in out and len(out.splitlines()) > 3
 
 
+def test_output_cut_short_by_a_closed_pipe_ends_quietly(tmp_path):
+    """``icemlab schema | head -1``: the reader leaves early; no traceback, the shell's exit status for SIGPIPE."""
+    import subprocess
+    import sys
+
+    command = f"'{sys.executable}' -m orchestrator.cli schema | head -1; echo \"status ${{PIPESTATUS[0]}}\" >&2"
+    result = subprocess.run(["bash", "-c", command], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert result.stdout == "{\n"
+    assert "Traceback" not in result.stderr and "BrokenPipeError" not in result.stderr, result.stderr
+    assert "status 141" in result.stderr
+
+
 def test_top_level_help_shows_the_main_commands(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
