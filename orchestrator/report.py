@@ -200,8 +200,11 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
         if reference is not None and len(values):
             comparison = statistics.compare_mean(values, reference.value, reference.spread, reference.spread_kind,
                                                  reference.runs)  # fmt: skip
+    # The IQM trims the best and worst quarter of runs; of one success flag per run it would trim outcomes, not
+    # outliers, and say nothing the rate does not.
+    flags = successes is not None and bool(np.isin(values, (0.0, 1.0)).all())
     return Group(task, method, dict(labels), variant or None, setting, members, mean, sem, interval,
-                 statistics.iqm_interval(values), successes, reference, comparison)  # fmt: skip
+                 None if flags else statistics.iqm_interval(values), successes, reference, comparison)  # fmt: skip
 
 
 def summarize(

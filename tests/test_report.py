@@ -114,6 +114,15 @@ def test_report_marks_a_matching_configuration_consistent_and_a_distant_one_belo
     assert rows["icem"]["runs_to_settle"] != "" and rows["cem_mpc"]["runs_to_settle"] == ""
 
 
+def test_one_success_flag_per_run_gets_no_interquartile_mean():
+    flags = [report_run("icem", value, "success_rate") for value in (1, 1, 0, 1, 0, 1)]
+    (group,) = report.summarize(flags, "success", references=[]).groups
+    assert group.iqm is None and group.successes == (4, 6)
+    rates = [report_run("icem", value, "success_rate") for value in (0.8, 0.9, 0.6, 1.0, 0.7, 0.9)]
+    (group,) = report.summarize(rates, "success", references=[]).groups
+    assert group.iqm is not None  # rates over several episodes per run: the IQM of runs means something
+
+
 def test_summary_intervals_follow_the_runs():
     runs = [report_run("icem", value) for value in (1.0, 2.0, 3.0)]
     summary = report.summarize(runs, "episode_return", references=[])
