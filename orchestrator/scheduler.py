@@ -228,7 +228,7 @@ class SweepScheduler:
                 runs = self.tracker.trial_runs(previous.run_id)
                 if not self.allow_physics_change:
                     self._refuse_mixed_physics(runs)
-                self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash)
+                self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash, len(self.loaded.trials))
                 return previous.run_id, runs
         run_id = self.tracker.start_sweep(
             self.experiment,
@@ -237,6 +237,7 @@ class SweepScheduler:
             self.loaded.text,
             self.sweep.tracking.tags,
             icemlab_version(),
+            len(self.loaded.trials),
         )
         return run_id, []
 

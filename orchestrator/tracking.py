@@ -55,6 +55,8 @@ TAG_ERROR_CLASS = "icemlab.error_class"
 TAG_ROUNDS = "icemlab.rounds"
 TAG_FAILED_TRIALS = "icemlab.failed_trials"
 TAG_INTERRUPTED = "icemlab.interrupted"
+TAG_PLANNED_TRIALS = "icemlab.planned_trials"
+"""How many trials the sweep file defines (set when the sweep starts or resumes)."""
 TAG_OVERRIDE = "icemlab.override."
 """Prefix of the tags that hold a trial's swept values (JSON)."""
 TAG_VERSION = "version."
@@ -103,6 +105,12 @@ class SweepRun(NamedTuple):
     experiment_id: str
     tags: dict[str, str]
     metrics: dict[str, float]
+
+    @property
+    def planned_trials(self) -> int | None:
+        """Trials the sweep file defines; None for runs recorded before the count was."""
+        value = self.tags.get(TAG_PLANNED_TRIALS)
+        return int(value) if value and value.isdigit() else None
 
 
 class TrialRun(NamedTuple):
@@ -239,9 +247,18 @@ class Tracker:
         return self._sweep_record(runs[0]) if runs else None
 
     def start_sweep(
-        self, experiment: str, sweep_name: str, file_hash: str, yaml_text: str, tags: dict[str, str], version: str
+        self,
+        experiment: str,
+        sweep_name: str,
+        file_hash: str,
+        yaml_text: str,
+        tags: dict[str, str],
+        version: str,
+        planned_trials: int | None = None,
     ) -> str:
         """Create the parent run of a sweep execution; returns its id."""
+        if planned_trials is not None:
+            tags = {**tags, TAG_PLANNED_TRIALS: str(planned_trials)}
         experiment_id = self.experiment_id(experiment)
         run = self.client.create_run(
             experiment_id,
@@ -257,10 +274,11 @@ class Tracker:
         self.client.log_text(run.info.run_id, yaml_text, "sweep.yaml")
         return run.info.run_id
 
-    def reopen_sweep(self, run_id: str, file_hash: str) -> None:
+    def reopen_sweep(self, run_id: str, file_hash: str, planned_trials: int) -> None:
         """Mark a parent run RUNNING again for a resume."""
         self.client.update_run(run_id, status=RUNNING)
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)
+        self.client.set_tag(run_id, TAG_PLANNED_TRIALS, str(planned_trials))
 
     def end_sweep(
         self,

@@ -95,6 +95,11 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     }
     assert {"trial.json", "checkpoints"} <= set(tracker.list_files(run_id))
 
+    # Progress against the sweep's plan, recorded when it starts and again when it resumes.
+    assert "finished 4 of 4  running 0  failed 0  killed 0" in cli("status", cwd=tmp_path).stdout
+    tracker.reopen_sweep(parent.run_id, "edited", planned_trials=6)
+    assert "finished 4 of 6" in cli("status", str(sweep), cwd=tmp_path).stdout
+
 
 @pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local_ray):
