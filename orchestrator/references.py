@@ -17,6 +17,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from orchestrator.yaml_problems import SweepError, SweepProblem, problems_from, read_yaml
+
 THESIS = Path(__file__).parent / "published" / "thesis.yaml"
 """The thesis's published figures (Tables 2 and 3, and those the chapters add)."""
 
@@ -69,8 +71,6 @@ def same_param(param: str | None, value: Any) -> bool:
 
 def load_references(path: str | Path) -> list[Reference]:
     """Read a reference file; raise SweepError with one ``FILE:LINE: path: message`` per problem."""
-    from orchestrator.sweep import SweepError, SweepProblem, problems_from, read_yaml
-
     path = Path(path)
     file = str(path)
     if not path.is_file():

@@ -13,14 +13,11 @@ to before anything runs; problems come back as :class:`SweepError` with one
 from __future__ import annotations
 
 import copy
-import difflib
 import hashlib
 import itertools
 import json
 import math
-import types
 import typing
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
@@ -38,14 +35,21 @@ from pydantic import (
 )
 
 from orchestrator.references import THESIS, Reference, load_references
+from orchestrator.yaml_problems import (  # noqa: F401 (SweepError and SweepProblem are re-exported)
+    SweepError,
+    SweepProblem,
+    closest_hint,
+    node_line,
+    problems_from,
+    read_yaml,
+    sorted_problems,
+    submodel,
+)
 from workers.methods import BUILTIN_METHODS, DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
 from workers.planning.config import Algorithm
 from workers.tasks import TASKS, make_task, unknown_task_message
 
 DEFAULT_MAX_TRIALS = 1000
-MAX_FILE_BYTES = 1 << 20
-"""Sweep files are read whole before anything is checked; a bound keeps a bad file cheap to refuse."""
-
 MethodName = Literal[tuple(METHODS)]  # type: ignore[valid-type]
 
 
@@ -338,26 +342,6 @@ class Trial(NamedTuple):
     """The variant the trial belongs to, if the sweep has variants."""
 
 
-class SweepProblem(NamedTuple):
-    """One problem of a sweep file, located."""
-
-    file: str
-    line: int
-    path: str
-    message: str
-
-    def __str__(self) -> str:
-        return f"{self.file}:{self.line}: {self.path}: {self.message}"
-
-
-class SweepError(Exception):
-    """A sweep file that cannot run; ``problems`` lists every located problem."""
-
-    def __init__(self, problems: list[SweepProblem]):
-        self.problems = problems
-        super().__init__("\n".join(str(p) for p in problems))
-
-
 class LoadedSweep(NamedTuple):
     """A validated sweep with its source and expansion."""
 
@@ -373,16 +357,6 @@ class LoadedSweep(NamedTuple):
 
 
 # ---------------------------------------------------------- dotted paths
-def _submodel(annotation: Any) -> type[BaseModel] | None:
-    """The pydantic model inside an annotation (``Model``, ``Model | None``), if any."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        models = [a for a in typing.get_args(annotation) if isinstance(a, type) and issubclass(a, BaseModel)]
-        return models[0] if len(models) == 1 else None
-    return None
-
-
 def _is_mapping(annotation: Any) -> bool:
     return annotation is dict or typing.get_origin(annotation) is dict
 
@@ -395,7 +369,7 @@ def settings_paths(model: type[BaseModel], prefix: str = "") -> list[str]:
     """Every dotted path into a settings model (groups end in '.<key>' for free-form mappings)."""
     paths = []
     for name, field in model.model_fields.items():
-        inner = _submodel(field.annotation)
+        inner = submodel(field.annotation)
         if inner is not None:
             paths.extend(settings_paths(inner, f"{prefix}{name}."))
         elif _is_mapping(field.annotation):
@@ -420,7 +394,7 @@ def parameter_path_problem(path: str, method: str) -> str | None:
             known = [f"{where}.{f}" if where else f for f in fields]
             if method == "mpc" and path == "planner.algorithm":
                 return "sweep 'algorithm' (top level), not planner.algorithm"
-            hint = _closest_hint(path, [*known, *top_level_paths(method)])
+            hint = closest_hint(path, [*known, *top_level_paths(method)])
             scope = f" in {where}" if where else ""
             return f"unknown parameter path {path!r}{hint}: no field {part!r}{scope} of method {method}"
         annotation = fields[part].annotation
@@ -429,7 +403,7 @@ def parameter_path_problem(path: str, method: str) -> str | None:
             if method == "mpc" and path == "planner.algorithm":
                 return "sweep 'algorithm' (top level), not planner.algorithm"
             return None
-        inner = _submodel(annotation)
+        inner = submodel(annotation)
         if inner is not None:
             model = inner
             continue
@@ -439,104 +413,7 @@ def parameter_path_problem(path: str, method: str) -> str | None:
     return None
 
 
-# ------------------------------------------------------------ locations
-def node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int:
-    """1-based line of the deepest node along ``loc`` that exists in the YAML."""
-    node, line = root, (root.start_mark.line + 1 if root is not None else 1)
-    for part in loc:
-        if isinstance(node, yaml.MappingNode):
-            for key, value in node.value:
-                if key.value == str(part):
-                    line, node = key.start_mark.line + 1, value
-                    break
-            else:
-                return line
-        elif isinstance(node, yaml.SequenceNode) and isinstance(part, int) and part < len(node.value):
-            node = node.value[part]
-            line = node.start_mark.line + 1
-        else:
-            return line
-    return line
-
-
-def _closest_hint(word: str, candidates: Iterable[str], prefix: str = "") -> str:
-    """' (did you mean 'X'?)' for the candidate closest to ``word``, or ''."""
-    close = difflib.get_close_matches(word, list(candidates), n=1)
-    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
-
-
-def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str:
-    """A hint for an unknown key, from the fields of the model the key sits in."""
-    for part in loc[:-1]:
-        field = model.model_fields.get(str(part)) if isinstance(part, str) else None
-        inner = _submodel(field.annotation) if field else None
-        if inner is None:
-            return ""
-        model = inner
-    return _closest_hint(key, model.model_fields)
-
-
-_UNION_MEMBERS = {"GridParameter", "RandomParameter", "SeedRange", "list[int]", "[key]"}
-
-
-def problems_from(error: ValidationError, file: str, root, model: type[BaseModel], prefix=()) -> list[SweepProblem]:
-    problems = []
-    for item in error.errors():
-        # Pydantic names union members in the location; they are not YAML keys.
-        loc = tuple(p for p in item["loc"] if p not in _UNION_MEMBERS)
-        message = item["msg"].removeprefix("Value error, ")
-        if item["type"] == "extra_forbidden":
-            message = f"unknown key{_did_you_mean(model, loc, str(loc[-1]))}"
-        elif item["type"] == "missing":
-            message = "required key is missing"
-        loc = tuple(prefix) + loc
-        path = ".".join(str(p) for p in loc) or "(file)"
-        problems.append(SweepProblem(file, node_line(root, loc), path, message))
-    return problems
-
-
-def _sorted(problems: list[SweepProblem]) -> list[SweepProblem]:
-    return sorted(dict.fromkeys(problems), key=lambda p: p.line)
-
-
 # --------------------------------------------------------------- loading
-def read_yaml(path: Path) -> tuple[str, Any, yaml.Node | None]:
-    file = str(path)
-    try:
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise SweepError([SweepProblem(file, 1, "(file)", (
-                f"the file is {size:,} bytes, above the {MAX_FILE_BYTES:,}-byte limit of sweep files; "
-                "write long seed lists as seeds: {first: 0, count: N}"
-            ))])  # fmt: skip
-        raw_bytes = path.read_bytes()
-    except OSError as error:
-        raise SweepError([SweepProblem(file, 1, "(file)", f"cannot read: {error.strerror or error}")]) from None
-    if b"\x00" in raw_bytes:
-        raise SweepError([SweepProblem(file, 1, "(file)", "binary file, not a YAML sweep")])
-    try:
-        text = raw_bytes.decode("utf-8")
-    except UnicodeDecodeError as error:
-        raise SweepError([SweepProblem(file, 1, "(file)", f"not UTF-8 text ({error.reason})")]) from None
-    loader_class = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-    try:
-        loader = loader_class(text)
-        try:
-            root = loader.get_single_node()
-            data = loader.construct_document(root) if root is not None else None
-        finally:
-            loader.dispose()
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else 1
-        reason = getattr(error, "problem", None) or str(error)
-        context, context_mark = getattr(error, "context", None), getattr(error, "context_mark", None)
-        if context and context_mark is not None and context_mark.line + 1 != line:
-            reason += f" ({context} on line {context_mark.line + 1})"
-        raise SweepError([SweepProblem(file, line, "(yaml)", f"YAML syntax error: {reason}")]) from None
-    return text, data, root
-
-
 def load_sweep(path: str | Path) -> LoadedSweep:
     """Read, validate and expand a sweep file; raise :class:`SweepError` on any problem."""
     path = Path(path)
@@ -551,10 +428,10 @@ def load_sweep(path: str | Path) -> LoadedSweep:
     except ValidationError as error:
         problems = problems_from(error, file, root, Sweep)
         problems += _method_problems(data, file, root) if "base" not in {p.path.split(".")[0] for p in problems} else []
-        raise SweepError(_sorted(problems)) from None
+        raise SweepError(sorted_problems(problems)) from None
     problems = _method_problems(data, file, root)
     if problems:
-        raise SweepError(_sorted(problems))
+        raise SweepError(sorted_problems(problems))
     references = _references(sweep, path, root)
     trials = expand(sweep, file, root)
     file_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -615,14 +492,14 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
     for role in roles if isinstance(roles, dict) else []:
         if role not in program.role_names:
             known = ", ".join(program.role_names) or "none"
-            hint = _closest_hint(str(role), program.role_names)
+            hint = closest_hint(str(role), program.role_names)
             message = f"method {method} has no role {role!r}{hint}; its roles: {known}"
             line = node_line(root, ("resources", "workers", role))
             problems.append(SweepProblem(file, line, f"resources.workers.{role}", message))
     metric = (data.get("metric") or {}).get("name")
     if metric is not None and metric not in program.metrics:
         problems.append(SweepProblem(file, node_line(root, ("metric", "name")), "metric.name", (
-            f"method {method} reports no metric {metric!r}{_closest_hint(str(metric), program.metrics)}; "
+            f"method {method} reports no metric {metric!r}{closest_hint(str(metric), program.metrics)}; "
             f"its metrics: {', '.join(program.metrics)}"
         )))  # fmt: skip
     return problems
@@ -697,7 +574,7 @@ def expand(sweep: Sweep, file: str = "<sweep>", root: yaml.Node | None = None) -
                 seen.add(key)
                 trials.append(Trial(key, trial, overrides, variant.get("name")))
     if problems:
-        raise SweepError(_sorted(problems))
+        raise SweepError(sorted_problems(problems))
     return trials
 
 
@@ -732,7 +609,7 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
             message = item["msg"].removeprefix("Value error, ")
             if item["type"] == "extra_forbidden" and fields is not None:
                 option = str(item["loc"][-1])
-                hint = _closest_hint(option, fields)
+                hint = closest_hint(option, fields)
                 message = f"{task} has no option {option!r}{hint}; its options: {', '.join(fields) or 'none'}"
             problems.append(SweepProblem(file, blame(path), path, message))
 

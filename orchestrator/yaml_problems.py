@@ -1,0 +1,150 @@
+"""User YAML files read whole, and their problems located: ``FILE:LINE: path: message``.
+
+Sweep files (orchestrator/sweep.py) and reference files (orchestrator/references.py) are both read here and
+report every problem against the line of the YAML node it concerns, with a did-you-mean hint for a
+misspelt key.
+"""
+
+from __future__ import annotations
+
+import difflib
+import types
+import typing
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+MAX_FILE_BYTES = 1 << 20
+"""Sweep files are read whole before anything is checked; a bound keeps a bad file cheap to refuse."""
+
+
+class SweepProblem(NamedTuple):
+    """One problem of a sweep file, located."""
+
+    file: str
+    line: int
+    path: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.file}:{self.line}: {self.path}: {self.message}"
+
+
+class SweepError(Exception):
+    """A sweep file that cannot run; ``problems`` lists every located problem."""
+
+    def __init__(self, problems: list[SweepProblem]):
+        self.problems = problems
+        super().__init__("\n".join(str(p) for p in problems))
+
+
+def submodel(annotation: Any) -> type[BaseModel] | None:
+    """The pydantic model inside an annotation (``Model``, ``Model | None``), if any."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        models = [a for a in typing.get_args(annotation) if isinstance(a, type) and issubclass(a, BaseModel)]
+        return models[0] if len(models) == 1 else None
+    return None
+
+
+
+def node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int:
+    """1-based line of the deepest node along ``loc`` that exists in the YAML."""
+    node, line = root, (root.start_mark.line + 1 if root is not None else 1)
+    for part in loc:
+        if isinstance(node, yaml.MappingNode):
+            for key, value in node.value:
+                if key.value == str(part):
+                    line, node = key.start_mark.line + 1, value
+                    break
+            else:
+                return line
+        elif isinstance(node, yaml.SequenceNode) and isinstance(part, int) and part < len(node.value):
+            node = node.value[part]
+            line = node.start_mark.line + 1
+        else:
+            return line
+    return line
+
+
+def closest_hint(word: str, candidates: Iterable[str], prefix: str = "") -> str:
+    """' (did you mean 'X'?)' for the candidate closest to ``word``, or ''."""
+    close = difflib.get_close_matches(word, list(candidates), n=1)
+    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
+
+
+def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str:
+    """A hint for an unknown key, from the fields of the model the key sits in."""
+    for part in loc[:-1]:
+        field = model.model_fields.get(str(part)) if isinstance(part, str) else None
+        inner = submodel(field.annotation) if field else None
+        if inner is None:
+            return ""
+        model = inner
+    return closest_hint(key, model.model_fields)
+
+
+_UNION_MEMBERS = {"GridParameter", "RandomParameter", "SeedRange", "list[int]", "[key]"}
+
+
+def problems_from(error: ValidationError, file: str, root, model: type[BaseModel], prefix=()) -> list[SweepProblem]:
+    """Pydantic's errors as located problems (``prefix`` places the validated model inside the file)."""
+    problems = []
+    for item in error.errors():
+        # Pydantic names union members in the location; they are not YAML keys.
+        loc = tuple(p for p in item["loc"] if p not in _UNION_MEMBERS)
+        message = item["msg"].removeprefix("Value error, ")
+        if item["type"] == "extra_forbidden":
+            message = f"unknown key{_did_you_mean(model, loc, str(loc[-1]))}"
+        elif item["type"] == "missing":
+            message = "required key is missing"
+        loc = tuple(prefix) + loc
+        path = ".".join(str(p) for p in loc) or "(file)"
+        problems.append(SweepProblem(file, node_line(root, loc), path, message))
+    return problems
+
+
+def sorted_problems(problems: list[SweepProblem]) -> list[SweepProblem]:
+    return sorted(dict.fromkeys(problems), key=lambda p: p.line)
+
+
+def read_yaml(path: Path) -> tuple[str, Any, yaml.Node | None]:
+    """(text, parsed data, root node for locating problems); unreadable, binary, huge or malformed files raise."""
+    file = str(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise SweepError([SweepProblem(file, 1, "(file)", (
+                f"the file is {size:,} bytes, above the {MAX_FILE_BYTES:,}-byte limit of sweep files; "
+                "write long seed lists as seeds: {first: 0, count: N}"
+            ))])  # fmt: skip
+        raw_bytes = path.read_bytes()
+    except OSError as error:
+        raise SweepError([SweepProblem(file, 1, "(file)", f"cannot read: {error.strerror or error}")]) from None
+    if b"\x00" in raw_bytes:
+        raise SweepError([SweepProblem(file, 1, "(file)", "binary file, not a YAML sweep")])
+    try:
+        text = raw_bytes.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise SweepError([SweepProblem(file, 1, "(file)", f"not UTF-8 text ({error.reason})")]) from None
+    loader_class = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    try:
+        loader = loader_class(text)
+        try:
+            root = loader.get_single_node()
+            data = loader.construct_document(root) if root is not None else None
+        finally:
+            loader.dispose()
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else 1
+        reason = getattr(error, "problem", None) or str(error)
+        context, context_mark = getattr(error, "context", None), getattr(error, "context_mark", None)
+        if context and context_mark is not None and context_mark.line + 1 != line:
+            reason += f" ({context} on line {context_mark.line + 1})"
+        raise SweepError([SweepProblem(file, line, "(yaml)", f"YAML syntax error: {reason}")]) from None
+    return text, data, root
