@@ -118,6 +118,9 @@ class Group(NamedTuple):
     """The test of the result against the reference."""
     paired: PairedComparison | None = None
     """The comparison with the sweep's baseline variant on the seeds both ran."""
+    implied: frozenset[str] = frozenset()
+    """Setting keys the variant's name stands for (one value across all its configurations): left out of
+    :meth:`name`, kept in ``setting`` and the CSV."""
 
     @property
     def n(self) -> int:
@@ -136,8 +139,12 @@ class Group(NamedTuple):
         parts = program.label_text(self.labels) if program and self.labels else list(self.labels.values())
         if self.variant:
             parts.append(self.variant)
-        parts += [f"{k}={v}" for k, v in self.setting.items()]
+        parts += self.setting_text()
         return " ".join(parts) or self.method
+
+    def setting_text(self) -> list[str]:
+        """``key=value`` for each setting that the labels and the variant's name do not already say."""
+        return [f"{k}={v}" for k, v in self.setting.items() if k not in self.implied]
 
 
 class Summary(NamedTuple):
@@ -177,6 +184,22 @@ def ablated_switches(task: str, params: dict[str, str]) -> list[str]:
         for name in PRESETS[algorithm]
         if f"planner.{name}" in params and not same_param(params[f"planner.{name}"], getattr(defaults, name))
     ]
+
+
+def _with_implied_settings(groups: list[Group]) -> list[Group]:
+    """Mark the settings a variant's name stands for: those with one value in every configuration of the variant
+    (its overrides, "colorednoise-1.1" rather than "colorednoise-1.1 planner.noise_release=1.1"); settings that
+    vary within the variant (a grid over it) stay in its configurations' names."""
+    by_variant: dict[tuple, list[Group]] = defaultdict(list)
+    for group in groups:
+        if group.variant:
+            by_variant[(group.task, group.method, group.variant)].append(group)
+    implied: dict[tuple, frozenset[str]] = {}
+    for key, members in by_variant.items():
+        values = [{k: json.dumps(v, sort_keys=True) for k, v in m.setting.items()} for m in members]
+        shared = set.intersection(*(set(v.items()) for v in values))
+        implied[key] = frozenset(k for k, _ in shared)
+    return [g._replace(implied=implied.get((g.task, g.method, g.variant), frozenset())) for g in groups]
 
 
 def _group(task, method, labels, variant, setting, members, metric, summary_key, references) -> Group:
@@ -243,6 +266,7 @@ def summarize(
         for (task, method_name, labels, variant, setting), members in grouped.items()
     ]
     groups.sort(key=lambda g: (g.task, _sort_labels(g.labels), g.variant or "", json.dumps(g.setting, sort_keys=True)))
+    groups = _with_implied_settings(groups)
     if pairing is not None:
         groups = [group._replace(paired=_paired(group, groups, pairing, summary_key)) for group in groups]
     finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean)]
@@ -448,7 +472,7 @@ def budget_figure(summary: Summary):
         for g in groups:
             if g.task == task:
                 name = " ".join(
-                    [g.labels.get("algorithm", g.method), g.variant or "", *[f"{k}={v}" for k, v in g.setting.items()]]
+                    [g.labels.get("algorithm", g.method), g.variant or "", *g.setting_text()]
                 )  # noqa: E501
                 lines[name.strip()].append(g)
         for name, members in sorted(lines.items()):

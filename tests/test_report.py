@@ -333,3 +333,25 @@ def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
     rows = {row["variant"]: row for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}
     assert rows["ablated"]["paired_baseline"] == "full" and rows["ablated"]["paired_test"] == "McNemar exact"
     assert rows["full"]["paired_baseline"] == ""
+
+
+def test_a_variants_name_stands_for_its_overrides_and_a_grid_over_it_stays_in_the_name():
+    import json
+
+    from orchestrator.tracking import TAG_OVERRIDE
+
+    runs = []
+    for release in ("2.1", "1.1"):
+        for horizon in (15, 30):
+            run = variant_run(f"colorednoise-{release}", "icem", 0, float(horizon))
+            overrides = {"planner.noise_release": release, "planner.horizon": horizon}
+            run.tags.update({TAG_OVERRIDE + k: json.dumps(v) for k, v in overrides.items()})
+            runs.append(run._replace(run_id=f"{release}-{horizon}", trial_key=f"{release}-{horizon}"))
+    summary = report.summarize(runs, "episode_return")
+    names = sorted(g.name() for g in summary.groups)
+    assert names == [
+        f"icem b50 colorednoise-{release} planner.horizon={h}" for release in ("1.1", "2.1") for h in (15, 30)
+    ]
+    assert all(g.setting["planner.noise_release"] in ("1.1", "2.1") for g in summary.groups)  # still in the CSV
+    rows = list(csv.DictReader(io.StringIO(report.to_csv(summary))))
+    assert sorted(row["planner.noise_release"] for row in rows) == ["1.1", "1.1", "2.1", "2.1"]
