@@ -305,13 +305,29 @@ def _sweep_name(argument: str):
     return argument, argument, None
 
 
+PACE_TRIALS = 10
+"""A running sweep's time to go is told from the pace of its last this many finished trials."""
+
+
 def _trial_counts(sweep, tracker) -> str:
-    """'finished 41 of 200  running 2  failed 0  killed 0': a sweep's trials by state."""
+    """'finished 41 of 200  running 2  failed 0  killed 0', and for a running sweep the time to go at its
+    recent pace."""
     children = tracker.trial_runs(sweep.run_id)
     counts = {s: sum(c.status == s for c in children) for s in ("FINISHED", "RUNNING", "FAILED", "KILLED")}
     parts = [f"{state.lower()} {count}" for state, count in counts.items()]
-    if sweep.planned_trials is not None:
-        parts[0] += f" of {sweep.planned_trials}"
+    if sweep.planned_trials is None:
+        return "  ".join(parts)
+    parts[0] += f" of {sweep.planned_trials}"
+    ends = sorted(c.end_time for c in children if c.status == "FINISHED" and c.end_time)[-PACE_TRIALS:]
+    remaining = sweep.planned_trials - counts["FINISHED"] - counts["FAILED"]
+    if sweep.status == "RUNNING" and remaining > 0 and len(ends) >= 3 and ends[-1] > ends[0]:
+        from orchestrator.plan import duration_text
+
+        seconds_per_trial = (ends[-1] - ends[0]) / (len(ends) - 1)
+        parts.append(
+            f"about {duration_text(remaining * seconds_per_trial)} to go at the pace of the last {len(ends)} "
+            "finished trials"
+        )
     return "  ".join(parts)
 
 

@@ -119,13 +119,14 @@ def describe(loaded: LoadedSweep, plan: SweepPlan, cluster_cpus: int) -> list[st
     lines.append(
         f"  about {plan.estimate.core_seconds / 3600:.2f} core-hours (cost per step from {plan.estimate.source})"
     )
-    lines.append(f"  this machine ({here} CPUs): about {_clock(wall_seconds(loaded, plan, here))}")
+    lines.append(f"  this machine ({here} CPUs): about {duration_text(wall_seconds(loaded, plan, here))}")
     if cluster_cpus != here:
-        lines.append(f"  a cluster of {cluster_cpus} CPUs: about {_clock(wall_seconds(loaded, plan, cluster_cpus))}")
+        lines.append(f"  a cluster of {cluster_cpus} CPUs: about {duration_text(wall_seconds(loaded, plan, cluster_cpus))}")
     return lines
 
 
-def _clock(seconds: float) -> str:
+def duration_text(seconds: float) -> str:
+    """'2 h 05 min' or '4 min 10 s': a duration as estimates are told."""
     seconds = int(math.ceil(seconds))
     hours, rest = divmod(seconds, 3600)
     minutes, seconds = divmod(rest, 60)

@@ -123,6 +123,8 @@ class TrialRun(NamedTuple):
     params: dict[str, str]
     tags: dict[str, str]
     metrics: dict[str, float]
+    end_time: float | None = None
+    """When the run ended, in seconds since the epoch; None while it runs."""
 
     @property
     def variant(self) -> str | None:
@@ -359,6 +361,7 @@ class Tracker:
             dict(run.data.params),
             dict(run.data.tags),
             dict(run.data.metrics),
+            run.info.end_time / 1000 if run.info.end_time else None,
         )
 
     def start_trial(

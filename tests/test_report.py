@@ -355,3 +355,18 @@ def test_a_variants_name_stands_for_its_overrides_and_a_grid_over_it_stays_in_th
     assert all(g.setting["planner.noise_release"] in ("1.1", "2.1") for g in summary.groups)  # still in the CSV
     rows = list(csv.DictReader(io.StringIO(report.to_csv(summary))))
     assert sorted(row["planner.noise_release"] for row in rows) == ["1.1", "1.1", "2.1", "2.1"]
+
+
+def test_status_tells_a_running_sweeps_time_to_go_from_its_recent_pace(tmp_path):
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("paced", "paced", "hash", "name: paced\n", {}, "dev", planned_trials=10)
+    start = 1_700_000_000_000  # ms
+    for index in range(5):
+        run_id = tracker.start_trial(parent, f"t{index}", f"t{index}", {"seed": index}, {})
+        if index < 4:  # four trials finished a minute apart, one still runs
+            tracker.client.set_terminated(run_id, status=FINISHED, end_time=start + 60_000 * index)
+    status = cli("status", cwd=tmp_path).stdout
+    assert "finished 4 of 10  running 1  failed 0  killed 0" in status
+    assert "about 6 min 00 s to go at the pace of the last 4 finished trials" in status  # 6 left, 60 s apart
+    tracker.end_sweep(parent, "KILLED", {})
+    assert "to go" not in cli("status", "paced", cwd=tmp_path).stdout  # a stopped sweep is not on its way
