@@ -89,7 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     status = commands.add_parser(
         "status",
         help="what ran, what runs, what failed",
-        description="Without SWEEP: every sweep in the store. With SWEEP (file or name): its trials.",
+        description=(
+            "Without SWEEP: every sweep in the store, its trials finished of those planned and, while it runs, "
+            "the time to go at its recent pace. With SWEEP (file or name): the same line, then its trials."
+        ),
     )
     status.add_argument("sweep", nargs="?", help="sweep file or sweep name")
     status.add_argument(
