@@ -121,7 +121,8 @@ def describe(loaded: LoadedSweep, plan: SweepPlan, cluster_cpus: int) -> list[st
     )
     lines.append(f"  this machine ({here} CPUs): about {duration_text(wall_seconds(loaded, plan, here))}")
     if cluster_cpus != here:
-        lines.append(f"  a cluster of {cluster_cpus} CPUs: about {duration_text(wall_seconds(loaded, plan, cluster_cpus))}")
+        cluster_seconds = wall_seconds(loaded, plan, cluster_cpus)
+        lines.append(f"  a cluster of {cluster_cpus} CPUs: about {duration_text(cluster_seconds)}")
     return lines
 
 
