@@ -400,6 +400,22 @@ def test_a_training_continues_from_the_last_unless_reinitialize_says(reinitializ
     np.testing.assert_array_equal(again.train(dataset).weights.arrays["w0"], second.weights.arrays["w0"])
 
 
+
+def test_restoring_a_trainer_to_before_its_first_training_forgets_the_training():
+    """A round 0 re-run after a restore gets the random initialisation again, not the weights trained since."""
+    rng = np.random.default_rng(2)
+    dataset = {"observations": rng.normal(size=(200, 4)), "actions": rng.uniform(-1, 1, size=(200, 2))}
+    settings = {"gradient_steps": 20, "batch_size": 32}
+    trainer = PolicyTrainer(5, settings, task="point_reach")
+    empty = trainer.state_dict()
+    trainer.train(dataset)
+    trainer.load_state_dict(empty)
+    restored, fresh = trainer.initialize(4, 2), PolicyTrainer(5, settings, task="point_reach").initialize(4, 2)
+    assert restored.version == fresh.version == 0
+    np.testing.assert_array_equal(restored.arrays["w0"], fresh.arrays["w0"])
+    retrained, uninterrupted = trainer.train(dataset), PolicyTrainer(5, settings).train(dataset)
+    np.testing.assert_array_equal(retrained.weights.arrays["w0"], uninterrupted.weights.arrays["w0"])
+
 def test_trainer_threads_follow_its_cpus():
     assert PolicyTrainer(0, cpus=0.5).threads == 1 and PolicyTrainer(0, cpus=2).threads == 2
     roles = {r.name: r for r in ApexProgram.roles_for(trial(), 1, {"relabel": 3})}

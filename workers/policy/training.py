@@ -213,6 +213,9 @@ class PolicyTrainer:
         import torch
 
         if not state:
+            # The state of a trainer that never trained (a checkpoint from before round 0): forget any training
+            # since, so that a round re-run after a restore starts from the same random initialisation.
+            self.model = None
             return
         self.initialize(int(state["obs_dim"]), int(state["action_dim"]))
         self.model.load_state_dict(arrays_to_tensors(state["model"]))
