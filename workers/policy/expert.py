@@ -23,8 +23,9 @@ With adaptive weights the cost that ranks samples changes between
 CEM-iterations, so costs of different iterations are not comparable; the
 executed action is then the first of the best sequence of the *last*
 CEM-iteration (its kept elites included and re-weighed), which is what the
-authors' code executes. With a fixed cost this is the same sequence as the
-planner's best-ever (kept elites carry the best forward).
+authors' code executes. With a fixed cost the planner's best-ever is
+executed; with keep-elites on (iCEM's default) that is the same sequence,
+since kept elites carry the best forward.
 """
 
 from __future__ import annotations

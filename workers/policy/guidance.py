@@ -18,7 +18,8 @@ the elite set, the elite set is ranked by f, f needs lambda). Reading used
 here, after the text's own words ("if the main cost J cannot be improved by
 the *preliminary* elite-set"): at every CEM-iteration the preliminary
 elite-set is the K candidates with the lowest main cost J (this iteration's
-samples and the kept elites); R(J) and R(C_j) are taken over it; then f ranks
+samples and the kept elites); R(J) and R(C_j) are taken over it (R(J) over
+its finite costs); then f ranks
 all candidates and selects the elite set that the distribution is refit to.
 So lambda is exactly 0 while J is flat among the K best samples (sparse
 rewards, nothing found yet), and the auxiliary terms then span at most a
