@@ -400,7 +400,6 @@ def test_a_training_continues_from_the_last_unless_reinitialize_says(reinitializ
     np.testing.assert_array_equal(again.train(dataset).weights.arrays["w0"], second.weights.arrays["w0"])
 
 
-
 def test_restoring_a_trainer_to_before_its_first_training_forgets_the_training():
     """A round 0 re-run after a restore gets the random initialisation again, not the weights trained since."""
     rng = np.random.default_rng(2)
@@ -415,6 +414,7 @@ def test_restoring_a_trainer_to_before_its_first_training_forgets_the_training()
     np.testing.assert_array_equal(restored.arrays["w0"], fresh.arrays["w0"])
     retrained, uninterrupted = trainer.train(dataset), PolicyTrainer(5, settings).train(dataset)
     np.testing.assert_array_equal(retrained.weights.arrays["w0"], uninterrupted.weights.arrays["w0"])
+
 
 def test_trainer_threads_follow_its_cpus():
     assert PolicyTrainer(0, cpus=0.5).threads == 1 and PolicyTrainer(0, cpus=2).threads == 2

@@ -70,11 +70,11 @@ def test_the_thesis_tables_are_data_with_sources():
     assert all(r.source for r in references)
 
 
-
 def test_table_9_stands_beside_the_full_apex_only():
     """APEX with every component on is compared with Table 9; iCEM BC, the ablations and other budgets are not."""
     references = load_references(THESIS)
-    trials = load_sweep(Path(__file__).resolve().parents[1] / "sweeps" / "acceptance" / "apex_halfcheetah.yaml").trials
+    sweep = Path(__file__).resolve().parents[1] / "sweeps" / "acceptance" / "apex_halfcheetah.yaml"
+    trials = load_sweep(sweep).trials
     compared = {}
     for trial in trials:
         params = {key: str(value) for key, value in trial.config.flat().items()}
@@ -83,7 +83,8 @@ def test_table_9_stands_beside_the_full_apex_only():
     assert compared["apex"] == compared["apex-reinit"] == (4847, "Table 9 (App. C.1)")
     assert compared["icem-bc"] is None and compared["icem-bc-reinit"] is None
     full = {key: str(value) for key, value in trials[0].config.flat().items()}
-    assert find(references, "halfcheetah_running", "apex", full | {"planner.budget": "100"}, "policy_return").value == 5596
+    budget_100 = full | {"planner.budget": "100"}
+    assert find(references, "halfcheetah_running", "apex", budget_100, "policy_return").value == 5596
     assert find(references, "halfcheetah_running", "apex", full | {"warm_start": "False"}, "policy_return") is None
     assert find(references, "halfcheetah_running", "apex", full, "expert_return").value == 5556
 
