@@ -51,7 +51,8 @@ def run(task: BridgeMaze, policy, seed: int = 0):
 LOWER = [(-12, -5.5), (-9, -5.5), (9, -5.5), (13, -5.5)]
 UPPER = [(-12, 9), (-9, 9), (9, 9), (13, 9)]
 MIDDLE = [(-9, 0), (9, 0), (13, 0)]
-INTO_LAVA = [(-12, 3), (-4, 3)]  # off the start platform into the gap between the middle and upper bridges
+INTO_LAVA = [(-9, 0), (-4, 0), (-4, 3)]  # onto the middle bridge, then off its side into the gap above it
+AT_THE_RIM = [(-12, 3), (-4, 3)]  # from the start platform straight at the gap between the middle and upper bridges
 
 
 @pytest.mark.parametrize("route", [LOWER, UPPER], ids=["lower", "upper"])
@@ -93,17 +94,26 @@ def test_on_solid_ground_the_cube_neither_bobs_nor_stalls():
 def test_a_fall_into_the_lava_ends_the_episode():
     task = BridgeMaze()
     observations, rewards, infos, terminated = run(task, waypoint_controller(INTO_LAVA))
-    assert terminated and len(rewards) < 60
+    assert terminated and len(rewards) < 100  # well before the 200-step limit
     assert observations[-1, 2] < -1.5 and infos[-1]["fell"]
     assert rewards[-1] == -1.0
     metrics = task.episode_metrics(observations, rewards, infos)
     assert metrics["failure"] == 1.0 and metrics["success"] == 0.0
 
 
+def test_the_platform_rims_leave_the_bridges_as_the_only_way_to_the_lava():
+    """Driven at speed at the gap between two bridges, the cube stops at the start platform's rim."""
+    task = BridgeMaze(episode_length=60)
+    observations, _, infos, terminated = run(task, waypoint_controller(AT_THE_RIM))
+    assert not terminated and not any(info["fell"] for info in infos)
+    assert np.all(on_walkway(observations[:, 0], observations[:, 1]))
+    assert -8.6 < observations[-1, 0] < -8.0 and observations[:, 7].max() > 4.0  # hit at speed
+
+
 def test_without_termination_the_fall_costs_minus_one_per_step():
-    task = BridgeMaze(episode_length=60, terminate_on_fall=False)
+    task = BridgeMaze(episode_length=100, terminate_on_fall=False)
     observations, rewards, _, terminated = run(task, waypoint_controller(INTO_LAVA))
-    assert not terminated and len(rewards) == 60
+    assert not terminated and len(rewards) == 100
     fallen = observations[1:, 2] < -1.5
     assert fallen[-1] and np.all(rewards[fallen] == -1.0)
 

@@ -15,7 +15,8 @@ Chosen here, because the thesis gives none of it:
   [-16, -8], goal platform x in [8, 16], both y in [-7, 11], surface z = 0;
   bridges over x in [-8, 8]: middle y in [-1, 1], lower y in [-6.25, -4.75],
   upper y in [8, 10] between walls. The cube (0.5 m, 1 kg) starts at (-12, 0).
-  Outer rims keep the cube from leaving the platforms anywhere but over lava.
+  Rims line every platform edge except where a bridge joins it, so the cube
+  reaches the lava only from a bridge (the XML says why).
 * Falling: the cube loses the walkway once its centre of mass is over lava
   (the walkway is one plane whose contact is switched off; see the XML for
   why) and drops to the lava plane at z = -2. A fall is z < -1.5 (eq. 36).
