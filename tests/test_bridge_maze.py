@@ -185,6 +185,12 @@ def test_walkway_geometry():
     assert in_wind_region(0, 3) and not in_wind_region(0, -5.5) and not in_wind_region(9, 0)
 
 
+def test_the_maps_walls_are_the_xmls_walls_and_rims():
+    walls = BridgeMaze.map_walls
+    assert len(walls) == 16  # two walls along the upper bridge, 3 outer and 4 inner rims per platform
+    assert ((-8.2, -8.0), (1.0, 8.0)) in [tuple(tuple(round(v, 6) for v in r) for r in w) for w in walls]
+
+
 def test_coverage_grid():
     grid = coverage_grid(np.array([[-20.0, -10.0], [20.0, 15.0], [0.0, 0.0], [0.1, 0.1], [30.0, 0.0]]))
     assert grid.shape == (COVERAGE_BINS, COVERAGE_BINS)

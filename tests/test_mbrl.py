@@ -20,7 +20,7 @@ from workers import checkpoint
 from workers.dynamics.ensemble import DynamicsEnsemble
 from workers.methods import METHODS, TrialSpec
 from workers.methods.base import LocalRoleGroup
-from workers.methods.mbrl import TABLE_15, MbrlProgram, MbrlSettings, frozen_rows
+from workers.methods.mbrl import TABLE_15, MbrlProgram, MbrlSettings, episode_ending, frozen_rows
 from workers.tasks import make_task
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -217,10 +217,26 @@ def test_random_episodes_draw_their_noise_as_the_planner_release(release):
         worker.close()
 
 
+def test_each_frozen_row_draws_where_its_episodes_went(tiny_run):
+    _, _, reports = tiny_run
+    pets, razer = reports[3:]
+    assert [a.path for a in pets.artifacts] == ["plots/frozen_pets.png"]
+    assert [a.path for a in razer.artifacts] == ["plots/frozen_razer_wA_0.5.png"]
+    assert all(a.data.startswith(b"\x89PNG") for a in pets.artifacts + razer.artifacts)
+
+
+@pytest.mark.parametrize(
+    "metrics, ending",
+    [({"success": 1.0, "falls": 0.0}, "success"), ({"success": 0.0, "falls": 1.0}, "fall"), ({"success": 0.0}, "neither")],
+)
+def test_an_episode_ends_in_success_a_fall_or_neither(metrics, ending):
+    assert episode_ending(metrics) == ending
+
+
 def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
     _, program, reports = tiny_run
     paths = [a.path for r in reports for a in r.artifacts]
-    assert paths == ["models/model_v002.npz", "models/model_v003.npz", "plots/visited_states.png"]
+    assert paths[:3] == ["models/model_v002.npz", "models/model_v003.npz", "plots/visited_states.png"]
     artifact = reports[2].artifacts[0]
     (tmp_path / "model.npz").write_bytes(artifact.data)
     model = DynamicsEnsemble.load(tmp_path / "model.npz")  # the one-liner of the README

@@ -301,20 +301,16 @@ def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
     return rows
 
 
-def visited_states_png(xy: np.ndarray, when: np.ndarray, title: str, task: Any) -> bytes:
-    """Fig. 37b/c: visited states in the task's plane, brighter the later the iteration that reached them first."""
+def _task_map(task: Any, title: str):
+    """A figure with the task's map (its walkable rectangles) drawn in the plane of the task."""
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
-
-    from workers import plots
 
     figure, axis = plt.subplots(figsize=(7, 4.6))
     for (x0, x1), (y0, y1) in getattr(task, "map_rectangles", ()):
         axis.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor="0.85", edgecolor="0.6", zorder=0))
-    # Fig. 37: brightness proportional to the time a cell was first encountered; plot later points last.
-    order = np.argsort(when, kind="stable")
-    points = axis.scatter(xy[order, 0], xy[order, 1], c=when[order], s=3, cmap="viridis", zorder=1)
-    figure.colorbar(points, ax=axis, label="iteration first visited (0: random episodes)")
+    for (x0, x1), (y0, y1) in getattr(task, "map_walls", ()):
+        axis.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor="0.35", edgecolor="none", zorder=0))
     ranges = getattr(task, "coverage_range", None)
     if ranges is not None:
         axis.set_xlim(*ranges[0])
@@ -323,6 +319,47 @@ def visited_states_png(xy: np.ndarray, when: np.ndarray, title: str, task: Any) 
     axis.set_ylabel("y")
     axis.set_aspect("equal")
     axis.set_title(title)
+    return figure, axis
+
+
+def visited_states_png(xy: np.ndarray, when: np.ndarray, title: str, task: Any) -> bytes:
+    """Fig. 37b/c: visited states in the task's plane, brighter the later the iteration that reached them first."""
+    from workers import plots
+
+    figure, axis = _task_map(task, title)
+    # Fig. 37: brightness proportional to the time a cell was first encountered; plot later points last.
+    order = np.argsort(when, kind="stable")
+    points = axis.scatter(xy[order, 0], xy[order, 1], c=when[order], s=3, cmap="viridis", zorder=1)
+    figure.colorbar(points, ax=axis, label="iteration first visited (0: random episodes)")
+    figure.tight_layout()
+    return plots.to_png(figure)
+
+
+PATH_COLOURS = {"success": "tab:green", "fall": "tab:red", "neither": "tab:gray"}
+"""How a frozen row's plot colours an episode's path, by how the episode ended."""
+
+
+def episode_ending(metrics: dict[str, float]) -> str:
+    """"success", "fall" or "neither": how an episode ended, from its task metrics."""
+    if metrics.get("success", 0.0) > 0:
+        return "success"
+    return "fall" if metrics.get("falls", 0.0) > 0 else "neither"
+
+
+def frozen_paths_png(paths: list[np.ndarray], endings: list[str], title: str, task: Any) -> bytes:
+    """The paths of a frozen row's episodes in the task's plane, coloured by how each ended (where PETS and
+    RAZER go, section 5.4.2), with the start marked and the count of each ending in the legend."""
+    from workers import plots
+
+    figure, axis = _task_map(task, title)
+    for path, ending in zip(paths, endings):
+        axis.plot(path[:, 0], path[:, 1], color=PATH_COLOURS[ending], linewidth=1, alpha=0.8, zorder=1)
+        axis.plot(path[-1, 0], path[-1, 1], marker="x", color=PATH_COLOURS[ending], zorder=2)
+    if paths:
+        axis.plot(paths[0][0, 0], paths[0][0, 1], marker="o", color="black", zorder=2)
+    for ending, colour in PATH_COLOURS.items():
+        axis.plot([], [], color=colour, label=f"{ending}: {endings.count(ending)}")
+    axis.legend(loc="upper right", fontsize="small")
     figure.tight_layout()
     return plots.to_png(figure)
 
@@ -654,7 +691,7 @@ class MbrlProgram(Program):
         result |= {k: v for k, v in episode.items() if k.startswith("cost/")}
         self.frozen_results[name] = result
         metrics = {f"frozen/{k}": v for k, v in result.items()}
-        return metrics, []
+        return metrics, self._frozen_paths(name, outcomes)
 
     # ----------------------------------------------------- records
     def _job(self, seed: int, razer, label: str):
@@ -716,6 +753,15 @@ class MbrlProgram(Program):
             if figure is not None:
                 artifacts.append(Artifact("plots/visited_states.png", figure))
         return artifacts
+
+    def _frozen_paths(self, name: str, outcomes: list) -> list[Artifact]:
+        """plots/frozen_<row>.png: where the row's episodes went (tasks with a plane to draw in)."""
+        paths = [self.task.visited_xy(outcome.trajectory.observations) for outcome in outcomes]
+        if not paths or any(path is None for path in paths):
+            return []
+        endings = [episode_ending(outcome.metrics) for outcome in outcomes]
+        title = f"{self.trial.task} frozen {name} s{self.trial.seed}: {len(paths)} episodes"
+        return [Artifact(f"plots/frozen_{name}.png", frozen_paths_png(paths, endings, title, self.task))]
 
     def _visited_states_png(self) -> bytes | None:
         """Fig. 37b/c: every visited state in the plane of the task, brighter the later it was first reached."""

@@ -77,6 +77,18 @@ COVERAGE_BINS = 50
 """Bins per axis of the coverage grid (App. D.4.1)."""
 
 
+def wall_footprints() -> tuple[tuple[tuple[float, float], tuple[float, float]], ...]:
+    """((x0, x1), (y0, y1)) of every wall and rim of the XML (boxes the cube collides with), for maps."""
+    model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+    walls = []
+    for geom in range(model.ngeom):
+        static = model.geom_bodyid[geom] == 0  # not the cube
+        if static and model.geom_type[geom] == mujoco.mjtGeom.mjGEOM_BOX and model.geom_contype[geom] & 1:
+            (x, y, _), (dx, dy, _) = model.geom_pos[geom], model.geom_size[geom]
+            walls.append(((float(x - dx), float(x + dx)), (float(y - dy), float(y + dy))))
+    return tuple(walls)
+
+
 def on_walkway(x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
     """Whether points (x, y) lie over solid ground (not lava)."""
     x, y = np.asarray(x), np.asarray(y)
@@ -222,6 +234,7 @@ class BridgeMaze(ModelBasedTask):
     colored_noise_beta = 2.0  # Table 15
     has_success = True
     map_rectangles = WALKWAY
+    map_walls = wall_footprints()
     coverage_range = COVERAGE_RANGE
     description = "cube over three bridges above lava, wind on the middle one (RAZER, App. D.4)"
 

@@ -56,6 +56,8 @@ class ModelBasedTask(ABC):
     """The task's differences to Table 15's planner settings (PlannerConfig fields), e.g. Table 16."""
     map_rectangles: ClassVar[tuple] = ()
     """((x0, x1), (y0, y1)) rectangles drawn under the visited-state scatter (e.g. BridgeMaze's walkways)."""
+    map_walls: ClassVar[tuple] = ()
+    """((x0, x1), (y0, y1)) footprints of walls and rims, drawn over the map rectangles."""
     coverage_range: ClassVar[tuple | None] = None
     """((x0, x1), (y0, y1)) extent of the visited-state plane, if the task has one."""
     has_success: ClassVar[bool] = False
