@@ -301,8 +301,8 @@ def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
     return rows
 
 
-def _task_map(task: Any, title: str):
-    """A figure with the task's map (its walkable rectangles) drawn in the plane of the task."""
+def _task_map(task: Any, title: str) -> tuple[Any, Any]:
+    """(figure, axis) with the task's map drawn in its plane: walkable rectangles, then walls and rims."""
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
