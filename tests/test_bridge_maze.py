@@ -186,7 +186,7 @@ def test_walkway_geometry():
 
 
 def test_the_maps_walls_are_the_xmls_walls_and_rims():
-    walls = BridgeMaze.map_walls
+    walls = BridgeMaze().map_walls
     assert len(walls) == 16  # two walls along the upper bridge, 3 outer and 4 inner rims per platform
     assert ((-8.2, -8.0), (1.0, 8.0)) in [tuple(tuple(round(v, 6) for v in r) for r in w) for w in walls]
 

@@ -38,6 +38,7 @@ Chosen here, because the thesis gives none of it:
 
 from __future__ import annotations
 
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -77,6 +78,7 @@ COVERAGE_BINS = 50
 """Bins per axis of the coverage grid (App. D.4.1)."""
 
 
+@cache
 def wall_footprints() -> tuple[tuple[tuple[float, float], tuple[float, float]], ...]:
     """((x0, x1), (y0, y1)) of every wall and rim of the XML (boxes the cube collides with), for maps."""
     model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
@@ -234,9 +236,12 @@ class BridgeMaze(ModelBasedTask):
     colored_noise_beta = 2.0  # Table 15
     has_success = True
     map_rectangles = WALKWAY
-    map_walls = wall_footprints()
     coverage_range = COVERAGE_RANGE
     description = "cube over three bridges above lava, wind on the middle one (RAZER, App. D.4)"
+
+    @property
+    def map_walls(self) -> tuple:  # read from the XML when a map is drawn, not at import
+        return wall_footprints()
 
     def __init__(self, **options: Any):
         super().__init__(**options)
