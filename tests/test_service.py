@@ -178,7 +178,7 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
         tmp_path,
         "worker_kill",
         task="halfcheetah_running",
-        base={"planner": {"budget": 100, "horizon": 30}, "max_steps": 20},
+        base={"planner": {"budget": 100, "horizon": 30}, "max_steps": 40},
         resources={"simulation_workers": 2, "threads_per_worker": 1},
     )
     loaded = load_sweep(sweep)
@@ -187,16 +187,20 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
     killed = {}
 
     def kill_worker_mid_episode():
-        def running_worker():
+        def running_trial():
             active = scheduler._active
-            if active and active[0].phase == "running" and active[0].progress.get("fraction", 0) > 0.1:
-                return active[0].group.workers["simulation"][0]
-            return None
+            return active[0] if active and active[0].phase == "running" else None
 
-        worker = wait_for(running_worker, timeout=120, interval=0.05, what="the trial to be under way")
-        pid = ray.get(worker.pid.remote())
+        def fraction_done() -> float:
+            return scheduler._active[0].progress.get("fraction", 0) if scheduler._active else 1.0
+
+        # The pid is asked for before the episode is far along: the call queues behind the worker's cost
+        # evaluations, and on a busy machine its answer could otherwise arrive after the episode has ended.
+        trial = wait_for(running_trial, timeout=120, interval=0.05, what="the trial to be placed")
+        pid = ray.get(trial.group.workers["simulation"][0].pid.remote())
+        wait_for(lambda: fraction_done() > 0.1, timeout=120, interval=0.05, what="the episode to be under way")
         os.kill(pid, signal.SIGKILL)
-        killed.update(pid=pid, fraction=scheduler._active[0].progress["fraction"])
+        killed.update(pid=pid, fraction=fraction_done())
 
     killer = threading.Thread(target=kill_worker_mid_episode, daemon=True)
     killer.start()
