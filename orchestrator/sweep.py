@@ -260,11 +260,12 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "window_counts": "episodes",
     "relabel_restart": "chunk",
     "reinitialize": False,
+    "keep_function": False,
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name,
 at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a
 setting does not change the identity of trials already run (and ``--resume`` still finds them). Where the
-new default changed the behaviour (APEX's ``window_counts`` and ``relabel_restart``), trials of the new
+new default changed the behaviour (APEX's ``window_counts`` and ``relabel_restart``, ``keep_function``), trials of the new
 default get new keys and the old trials stay reachable by setting the old value."""
 
 

@@ -400,6 +400,32 @@ def test_a_training_continues_from_the_last_unless_reinitialize_says(reinitializ
     np.testing.assert_array_equal(again.train(dataset).weights.arrays["w0"], second.weights.arrays["w0"])
 
 
+@pytest.mark.parametrize("keep_function", [True, False])
+def test_a_new_standardisation_keeps_what_the_carried_over_network_computes(keep_function, monkeypatch):
+    """The window moves (other mean and scale): with keep_function the trained network's output for every raw
+    observation is the same right after the refit, before any gradient step; without it, it is not."""
+    import torch
+
+    rng = np.random.default_rng(4)
+    observations = rng.normal(size=(400, 4))
+    actions = np.tanh(observations[:, :2] * [1.0, -0.5])
+    settings = {"gradient_steps": 200, "batch_size": 64, "keep_function": keep_function}
+    trainer = PolicyTrainer(3, settings, task="point_reach", obs_dim=4, action_dim=2)
+    trained = Policy(trainer.train({"observations": observations, "actions": actions}).weights)
+    probe = rng.normal(size=(50, 4)) * 2  # standardised either way, all well inside +-INPUT_CLIP
+    moved = observations * [3.0, 1.5, 1.0, 2.0] + [5.0, -2.0, 0.0, 1.0]
+    refitted = {}
+
+    def output_before_the_first_step():
+        with torch.no_grad():
+            refitted.setdefault("raw", trainer.model(trainer._inputs(probe)).numpy())
+
+    monkeypatch.setattr(trainer.optimiser, "step", output_before_the_first_step)
+    trainer.train({"observations": moved, "actions": actions}, steps=1)
+    assert not np.allclose(trainer.mean, 0, atol=1)  # the standardisation did move
+    assert np.allclose(refitted["raw"], trained.raw(probe), atol=1e-4) == keep_function
+
+
 def test_restoring_a_trainer_to_before_its_first_training_forgets_the_training():
     """A round 0 re-run after a restore gets the random initialisation again, not the weights trained since."""
     rng = np.random.default_rng(2)

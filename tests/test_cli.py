@@ -209,17 +209,25 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "sweep, first, last",
+    "sweep, first, last, earlier_reading",
     [
-        ("fetch_pick_place", "a5f5dd7184910803", "b51fb7a40058f900"),
-        ("razer_bridge_maze", "d52a4c09b582765a", "df252c548e89626c"),
+        ("fetch_pick_place", "a5f5dd7184910803", "b51fb7a40058f900", {}),
+        ("razer_bridge_maze", "d52a4c09b582765a", "df252c548e89626c", {"model": {"keep_function": False}}),
     ],
 )
-def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last):
+def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last, earlier_reading, tmp_path):
     """Keys of shipped sweeps as they were before `planner.noise_release` existed: --resume still finds their
-    trials. Setting the new field to anything else is a different trial."""
-    trials = load_sweep(ROOT / "sweeps" / "paper" / f"{sweep}.yaml").trials
+    trials. Setting the new field to anything else is a different trial. A new default that changes the
+    behaviour (the ensemble's `keep_function`) makes new trials; the earlier ones stay reachable at the old value."""
+    data = yaml.safe_load((ROOT / "sweeps" / "paper" / f"{sweep}.yaml").read_text())
+    shipped = load_sweep(ROOT / "sweeps" / "paper" / f"{sweep}.yaml").trials
+    for section, values in earlier_reading.items():
+        data["base"].setdefault(section, {}).update(values)
+    path = tmp_path / f"{sweep}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    trials = load_sweep(path).trials
     assert (trials[0].key, trials[-1].key) == (first, last)
+    assert (shipped[0].key == first) == (not earlier_reading)
 
 
 def test_apex_trials_of_the_earlier_readings_keep_their_keys(tmp_path):
@@ -232,6 +240,7 @@ def test_apex_trials_of_the_earlier_readings_keep_their_keys(tmp_path):
     assert shipped[0].key not in earlier and shipped[-1].key not in earlier
     sweep["base"]["window_counts"] = "episodes"
     sweep["base"]["relabel_restart"] = "chunk"
+    sweep["base"].setdefault("policy", {})["keep_function"] = False
     path = tmp_path / "apex_fetch.yaml"
     path.write_text(yaml.safe_dump(sweep, sort_keys=False))
     trials = load_sweep(path).trials

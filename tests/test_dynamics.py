@@ -143,6 +143,28 @@ def test_warm_start_continues_and_from_scratch_restarts():
     assert by_config.train(data, epochs=1).from_scratch
 
 
+@pytest.mark.parametrize("keep_function", [True, False])
+def test_a_warm_started_model_keeps_its_predictions_when_the_normalisation_moves(keep_function, monkeypatch):
+    """New data with another mean and scale refit the normaliser; with keep_function every member predicts the
+    same for every raw input right after the refit (before any gradient step); without it, it does not."""
+    model = tiny_model(epochs=5, keep_function=keep_function)
+    model.train(toy_data(500, noise=0.05))
+    probe = torch.as_tensor(np.random.default_rng(1).uniform(-2, 2, size=(40, 5)), dtype=torch.float32)
+    before = model.predict(probe.expand(5, -1, -1))
+    base = toy_data(500, noise=0.05, seed=2)
+    moved = Transitions(base.observations * 2 + 1, base.actions * 0.5, base.next_observations * 2 + 1)
+    refitted = {}
+
+    def predictions_before_the_first_step():
+        refitted.setdefault("out", model.predict(probe.expand(5, -1, -1)))
+
+    monkeypatch.setattr(model.optimizer, "step", predictions_before_the_first_step)
+    model.train(moved, epochs=1)
+    assert not torch.allclose(model.net.input_mean[:3], torch.zeros(3), atol=0.5)  # the normalisation did move
+    same = all(torch.allclose(a, b, atol=1e-4) for a, b in zip(before, refitted["out"]))
+    assert same == keep_function
+
+
 def test_gradient_clipping_is_per_member():
     model = tiny_model(grad_norm=2.0)
     scales = torch.tensor([0.1, 1.0, 10.0, 100.0, 0.0])

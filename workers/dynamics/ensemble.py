@@ -21,7 +21,9 @@ Reading of the thesis where it is silent (see also :class:`EnsembleConfig`):
   default off.
 * Inputs (obs, action) are normalised by mean and std fitted on the training
   data at every training call (``use_input_normalization`` True); outputs are
-  not normalised (``use_output_normalization`` False).
+  not normalised (``use_output_normalization`` False). A warm-started model
+  folds the change of normalisation into its first layer (``keep_function``),
+  so refitting it does not move what the members predict.
 * Warm start: a training call continues from the current weights and Adam
   state by default. The thesis only lists ``epochs`` per training call
   (Table 13) and ``train_epochs_only_with_latest_data`` False, i.e. every call
@@ -227,14 +229,26 @@ class DynamicsEnsemble:
         targets = torch.as_tensor(data.next_observations, dtype=torch.float32) - obs
         return inputs, targets
 
-    def fit_normalizer(self, data: Transitions) -> None:
-        """Fit the input normalisation (use_input_normalization, Table 13) to a dataset."""
+    def fit_normalizer(self, data: Transitions, keep_function: bool = False) -> None:
+        """Fit the input normalisation (use_input_normalization, Table 13) to a dataset.
+
+        With ``keep_function`` the change is folded into every member's first layer: with z = (x - m) / s and
+        z' = (x - m') / s', z W + b = z' (diag(s'/s) W) + (b + ((m' - m) / s) W), so each member's output for
+        every raw input stays the same.
+        """
         inputs, _ = self._inputs_targets(data)
         std = inputs.std(dim=0, unbiased=False)
         # Constant inputs (e.g. a quaternion that never rotates) would divide by (almost) zero.
         threshold = max(self.config.input_std_threshold, 1e-6)
-        self.net.input_mean.copy_(inputs.mean(dim=0))
-        self.net.input_std.copy_(torch.where(std < threshold, torch.ones_like(std), std))
+        mean, std = inputs.mean(dim=0), torch.where(std < threshold, torch.ones_like(std), std)
+        if keep_function:
+            net = self.net
+            with torch.no_grad():
+                shift = (mean - net.input_mean) / net.input_std
+                net.biases[0].add_(torch.einsum("i,kio->ko", shift, net.weights[0]).unsqueeze(1))
+                net.weights[0].mul_((std / net.input_std).view(1, -1, 1))
+        self.net.input_mean.copy_(mean)
+        self.net.input_std.copy_(std)
         if self.config.state_margin is not None:
             next_states = torch.as_tensor(data.next_observations, dtype=torch.float32)
             states = torch.cat([inputs[:, : self.obs_dim], next_states])
@@ -304,7 +318,8 @@ class DynamicsEnsemble:
             from_scratch = config.retrain_from_scratch
         if from_scratch:
             self._initialise(self.seed + 1_000_003 * (self.weights_version + 1))
-        self.fit_normalizer(data)
+        # A model that has trained keeps what it learned when the normalisation moves; a fresh one has nothing to keep.
+        self.fit_normalizer(data, keep_function=config.keep_function and self.weights_version > 0 and not from_scratch)
         inputs, targets = self._inputs_targets(data)
         n, k = len(inputs), self.ensemble_size
         generator = torch.Generator().manual_seed(seed)

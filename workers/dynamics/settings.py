@@ -65,6 +65,10 @@ class EnsembleConfig(BaseModel):
     by this fraction of the range on each side; None: no clamp. Not in the thesis: a model barely trained
     on a few episodes extrapolates linearly far from its data, and 30 compounded steps then grow without
     bound (seen on BridgeMaze: 1e7 after 30 steps, then inf), which leaves every sequence the same cost."""
+    keep_function: bool = True
+    """When a warm-started ensemble's input normalisation is refitted to the grown dataset, rescale and shift
+    every member's first layer so that the members compute the same function of the raw (state, action) as
+    before; False: the old weights meet inputs normalised differently from those they were fitted on."""
     retrain_from_scratch: bool = False
     """Re-initialise weights and Adam state at every training call; default warm start (see the module docstring)."""
 

@@ -3,8 +3,10 @@
 MSE to the expert's actions plus l1 (1e-6) and l2 (1e-5) penalties on the
 weight matrices, Adam (lr 5e-4), batches of 1024 drawn with replacement,
 1000 gradient steps per training. By default the network and the optimiser
-are never reset: every training continues from the last one (only the input
-standardisation follows the current dataset). The thesis does not say
+are never reset: every training continues from the last one. The input
+standardisation follows the current dataset; when it moves, the first layer
+is rescaled and shifted with it, so the carried-over network computes the
+same function of the raw observation as before (``keep_function``). The thesis does not say
 whether the policy is re-initialised between APEX iterations;
 ``reinitialize: true`` starts every training from a fresh network and
 optimiser instead (README, APEX, measures both).
@@ -40,6 +42,10 @@ class PolicySettings(BaseModel):
     """Samples per gradient step, drawn with replacement from the dataset."""
     gradient_steps: int = Field(1000, ge=1)
     """Gradient steps per training (Table 11 'iterations'); APEX trains twice per iteration."""
+    keep_function: bool = True
+    """When a carried-over network's input standardisation is refitted to the current dataset, rescale and shift
+    its first layer so that it computes the same function of the raw observation; False: the old weights meet
+    inputs standardised differently from those they were fitted on (the reading before)."""
     reinitialize: bool = False
     """Start every training from a freshly initialised network and optimiser (seeded by the trainer's seed and
     the training's index) instead of continuing from the last one; the thesis leaves this open."""
@@ -142,6 +148,18 @@ class PolicyTrainer:
         return PolicyWeights(self.version, arrays, self.task)
 
     # ----------------------------------------------------------- training
+    def _restandardise_first_layer(self, mean: np.ndarray, std: np.ndarray) -> None:
+        """Fold a change of input standardisation into the first layer: with z = (x - m) / s and z' = (x - m') / s',
+        W z + b = (W diag(s'/s)) z' + (b + W (m' - m) / s), so the network's output for every raw x is unchanged
+        (up to the clipping of standardised inputs at +-INPUT_CLIP)."""
+        import torch
+
+        first = self.linears[0]
+        with torch.no_grad():
+            shift = torch.as_tensor((mean - self.mean) / self.std, dtype=first.weight.dtype)
+            first.bias.add_(first.weight @ shift)
+            first.weight.mul_(torch.as_tensor(std / self.std, dtype=first.weight.dtype))
+
     def _inputs(self, observations: np.ndarray):
         import torch
 
@@ -165,7 +183,11 @@ class PolicyTrainer:
         settings = self.settings
         if settings.reinitialize and self.version > 0:
             self._build_network(int(np.random.SeedSequence([self.seed, 2, self.version]).generate_state(1)[0]))
-        self.mean, self.std = standardisation(observations)
+        mean, std = standardisation(observations)
+        # A trained network is carried over; a fresh one (first training, or reinitialize) has nothing to keep.
+        if settings.keep_function and self.version > 0 and not settings.reinitialize:
+            self._restandardise_first_layer(mean, std)
+        self.mean, self.std = mean, std
         inputs = self._inputs(observations)
         steps = settings.gradient_steps if steps is None else steps
         losses = np.empty(steps)
