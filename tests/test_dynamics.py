@@ -143,6 +143,17 @@ def test_warm_start_continues_and_from_scratch_restarts():
     assert by_config.train(data, epochs=1).from_scratch
 
 
+@pytest.mark.parametrize("scale", [0.5, 1.0])
+def test_initial_weights_are_a_truncated_normal_of_the_configured_std(scale):
+    """std = init_std_scale / sqrt(fan_in), cut at 2 std (a normal cut at +-2 has 0.880 of its std)."""
+    model = DynamicsEnsemble(10, 2, EnsembleConfig.preset("bridge_maze", init_std_scale=scale), seed=0)
+    for weight in model.net.weights:
+        nominal = scale / math.sqrt(weight.shape[1])
+        assert weight.abs().max().item() <= 2 * nominal
+        assert abs(weight.std().item() / (0.880 * nominal) - 1) < 0.05
+    assert all(not bias.any() for bias in model.net.biases)
+
+
 @pytest.mark.parametrize("keep_function", [True, False])
 def test_a_warm_started_model_keeps_its_predictions_when_the_normalisation_moves(keep_function, monkeypatch):
     """New data with another mean and scale refit the normaliser; with keep_function every member predicts the

@@ -15,7 +15,7 @@ Reading of the thesis where it is silent (see also :class:`EnsembleConfig`):
   ``size`` (the convention of the PETS-derived frameworks whose parameter names
   the tables use); an output layer of 2 x obs_dim follows.
 * Weights use a normal truncated at two standard deviations, std 1/(2 sqrt(in))
-  ("truncated_normal", Table 13, as in the PETS code), biases start at 0.
+  ("truncated_normal", Table 13, as in the PETS code; ``init_std_scale``), biases start at 0.
 * Log-variance bounds are soft (D.2.1) and, as the thesis decided, fixed:
   ``learn_logvar_bounds`` can make them learnable (with the PETS regulariser),
   default off.
@@ -152,10 +152,10 @@ class EnsembleMLP(nn.Module):
         self.layer_sizes = sizes
 
     def reset_parameters(self, generator: torch.Generator | None = None) -> None:
-        """Truncated-normal weights (std 1/(2 sqrt(fan_in)), cut at 2 std) and zero biases (Table 13)."""
+        """Truncated-normal weights (std init_std_scale / sqrt(fan_in), cut at 2 std) and zero biases (Table 13)."""
         with torch.no_grad():
             for weight in self.weights:
-                std = 1.0 / (2.0 * math.sqrt(weight.shape[1]))
+                std = self.config.init_std_scale / math.sqrt(weight.shape[1])
                 # Resampling by hand: nn.init.trunc_normal_ takes no generator.
                 values = torch.randn(weight.shape, generator=generator)
                 while (outside := values.abs() > 2.0).any():

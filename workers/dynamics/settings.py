@@ -42,6 +42,10 @@ class EnsembleConfig(BaseModel):
     """Upper soft bound of the predicted log-variance (var_clipping_high, Table 13)."""
     learn_logvar_bounds: bool = False
     """Train the bounds as parameters with the PETS regulariser 0.01 (sum max - sum min); D.2.1 keeps them fixed."""
+    init_std_scale: float = Field(0.5, gt=0)
+    """Initial weights: a normal truncated at 2 std with std = init_std_scale / sqrt(fan_in). Table 13 says
+    "truncated_normal"; 0.5 is the PETS code's std (and the authors' framework's). Deep nets start with
+    almost no signal at 0.5 (6 x 400 SiLU: output std 4e-5), which slows learning what depends on position."""
     lr: float = Field(2e-3, gt=0)
     """Adam learning rate (Table 13)."""
     adam_eps: float = Field(1e-8, gt=0)
