@@ -280,6 +280,25 @@ def test_epistemic_variance_is_eq_24_at_the_mean_state():
     torch.testing.assert_close(prop.means[0, :, 0], start + mu.mean(0))
 
 
+def test_epistemic_variance_of_the_means_alone_leaves_out_the_variance_of_variances():
+    model = tiny_model()
+    start, actions = torch.randn(3), torch.rand(2, 3, 2)
+    prop = petsus_propagate(model, start, actions, 5, "shared", torch.Generator().manual_seed(0), "means")
+    mu, _ = model.predict(torch.cat([start.expand(2, 3), actions[:, 0]], 1).expand(5, -1, -1))
+    torch.testing.assert_close(prop.var_epistemic[:, 0], mu.var(0, unbiased=False))
+    # The evaluator passes the setting on: u_E (sum over steps and dimensions of sqrt Var_E) is that of the
+    # means alone, below the default's.
+    u_e = {
+        terms: EnsembleEvaluator(
+            model, lambda s, a, s2: s2[:, 0], RazerSettings(epistemic_weight=0.05, epistemic_terms=terms), particles=5
+        ).costs(start.numpy(), actions.numpy())[1]["u_E"]
+        for terms in ("means_and_variances", "means")
+    }
+    per_member = petsus_propagate(model, start, actions, 5, "per_member", epistemic_terms="means")
+    np.testing.assert_allclose(u_e["means"], per_member.var_epistemic.sqrt().sum((1, 2)).numpy(), rtol=1e-5)
+    assert np.all(u_e["means"] < u_e["means_and_variances"])
+
+
 def test_aleatoric_variance_is_eq_22():
     """Step 1 (all particles at s0): the mean over members of Sigma_k(s0, a0)."""
     model = tiny_model()

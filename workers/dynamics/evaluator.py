@@ -72,6 +72,7 @@ class EnsembleEvaluator:
                 self.particles,
                 self.settings.mean_propagation,
                 self.generator,
+                self.settings.epistemic_terms,
             )
 
     def terms(self, observation: np.ndarray, actions: np.ndarray) -> CostTerms:

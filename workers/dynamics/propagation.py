@@ -29,7 +29,8 @@ Uncertainties, per state dimension:
 * Var_E(t+1) = Var_k[mu_k(s_bar_t, a_t)] + Var_k[Sigma_k(s_bar_t, a_t)] (eq. 24),
   the empirical (population, divide-by-K) variance over members, taken at each
   member's own mean state in the per_member mode. The second term literally
-  adds a variance of variances to a variance of means, as eq. 24 writes it.
+  adds a variance of variances to a variance of means, as eq. 24 writes it;
+  ``epistemic_terms="means"`` keeps the first term only.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from typing import NamedTuple
 import torch
 
 from workers.dynamics.ensemble import DynamicsEnsemble
-from workers.dynamics.settings import MeanPropagation
+from workers.dynamics.settings import EpistemicTerms, MeanPropagation
 
 
 class Propagation(NamedTuple):
@@ -73,6 +74,7 @@ def petsus_propagate(
     particles: int,
     mean_propagation: MeanPropagation = "per_member",
     generator: torch.Generator | None = None,
+    epistemic_terms: EpistemicTerms = "means_and_variances",
 ) -> Propagation:
     """Propagate P TS1 particles (and the mean states) of N action sequences through the ensemble.
 
@@ -83,6 +85,7 @@ def petsus_propagate(
         particles: P, particles per sequence.
         mean_propagation: ``per_member``, ``shared`` or ``none`` (see the module docstring).
         generator: torch generator for the particle noise and the TS1 assignment.
+        epistemic_terms: what Var_E sums (see :class:`~workers.dynamics.settings.RazerSettings`).
     """
     if particles < 1:
         raise ValueError(f"particles must be at least 1, got {particles}")
@@ -143,7 +146,8 @@ def petsus_propagate(
 
         if mean_state is not None:
             mean_mu, mean_var = mu[:, rows:], logvar[:, rows:].exp()  # (K, N, d)
-            var_e.append(population_variance(mean_mu) + population_variance(mean_var))
+            spread = population_variance(mean_mu)
+            var_e.append(spread + population_variance(mean_var) if epistemic_terms == "means_and_variances" else spread)
             step = mean_mu if mean_propagation == "per_member" else mean_mu.mean(dim=0, keepdim=True)
             mean_state = model.clamp_states(mean_state + step)
             means.append(mean_state)

@@ -19,6 +19,9 @@ if TYPE_CHECKING:
 MeanPropagation = Literal["none", "per_member", "shared"]
 """PETSUS mean propagation: none (PETS), one mean state per member, or one shared mean state."""
 
+EpistemicTerms = Literal["means_and_variances", "means"]
+"""What Var_E of eq. 24 measures over the members: their predicted means' and variances' spread, or the means' only."""
+
 UncertaintyReduction = Literal["sum_sqrt", "sqrt_sum", "mean_sqrt"]
 """How sqrt(Var) of eq. 26-27 combines the state dimensions (see workers/dynamics/costs.py)."""
 
@@ -192,6 +195,11 @@ class RazerSettings(BaseModel):
     """w_E of the epistemic bonus (eq. 27); 0.05 for the BridgeMaze exploration run (section 5.4.2)."""
     mean_propagation: MeanPropagation = "per_member"
     """Mean propagation of PETSUS: per_member, shared or none (PETS); see workers/dynamics/propagation.py."""
+    epistemic_terms: EpistemicTerms = "means_and_variances"
+    """Var_E of eq. 24: ``means_and_variances``, the variance over members of their predicted means plus that of
+    their predicted variances, as the equation is written; ``means``, the first term alone, the usual
+    disagreement measure. The second term is in squared units of the first, and wherever one member's
+    log-variance nears its upper bound it outweighs the first many times over (README, BridgeMaze)."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) combines dimensions: sum of per-dim std (default), sqrt of the summed variance, mean std."""
     uncertainty_dims: tuple[int, ...] | None = None

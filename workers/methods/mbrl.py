@@ -52,6 +52,7 @@ from workers.dynamics.settings import (
     ENSEMBLE_PRESETS,
     PRESET_SHAPES,
     EnsembleConfig,
+    EpistemicTerms,
     MeanPropagation,
     RazerSettings,
     SafetyBox,
@@ -152,6 +153,10 @@ class RazerCostSettings(_Settings):
     """w_E, the epistemic bonus weight (eq. 27); 0.05 for the BridgeMaze exploration run (section 5.4.2)."""
     mean_propagation: MeanPropagation = "per_member"
     """PETSUS mean propagation: per_member (App. D.2.4), shared (eq. 24's s_bar) or none (PETS)."""
+    epistemic_terms: EpistemicTerms = "means_and_variances"
+    """Var_E of eq. 24: the members' spread of predicted means plus that of predicted variances, as written, or of
+    the ``means`` alone (the variances' spread is in squared units and dominates wherever a member's log-variance
+    nears its upper bound; README, BridgeMaze)."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) of eq. 26-27 combines dimensions: sum of per-dimension std (default), sqrt of the summed
     variance, or mean std."""
