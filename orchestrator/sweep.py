@@ -263,6 +263,7 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "keep_function": False,
     "init_std_scale": 0.5,
     "epistemic_terms": "means_and_variances",
+    "planner_seed_offset": 0,
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name,
 at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a

@@ -164,6 +164,20 @@ def test_run_episode_matches_the_program():
     assert list(result.rewards) == list(report.series["step/reward"])
 
 
+def test_planner_seed_offset_replays_the_same_start_with_other_samples():
+    """The offset reseeds the planner's noise only: the trial is the episode reset with its own seed and
+    planned with seed + offset, and its actions differ from the default's."""
+    spec = trial(seed=5, planner_seed_offset=1000)
+    task = make_task(spec.task)
+    planner = CEMPlanner(spec.settings.planner, task.action_dim, seed=5)
+    episode = MpcEpisode(task, task.make_env(), planner, SimulationPool(task.name, 1), 5, 12, planner_seed=1005)
+    episode.run()
+    (replay,) = run_locally(METHODS["mpc"], spec)
+    (plain,) = run_locally(METHODS["mpc"], trial(seed=5))
+    assert list(episode.result().rewards) == rewards([replay])
+    assert rewards([replay]) != rewards([plain])
+
+
 def test_runner_refuses_code_that_differs_from_the_driver():
     with pytest.raises(RuntimeError, match="different icemlab code"):
         ProgramRunner(trial(), {}, 1, expected_code="0" * 16)

@@ -107,9 +107,10 @@ class MpcEpisode:
         env: its real environment (reset here with ``seed``).
         planner: the planner (reset here with ``seed``).
         evaluator: where planning costs come from.
-        seed: the episode's seed (environment reset and planner noise).
+        seed: the episode's seed (environment reset, and planner noise unless ``planner_seed`` is given).
         steps: environment steps of the episode.
         record_states: keep the simulator state of every step in the trajectory (for relabeling).
+        planner_seed: seed of the planner's noise, when it differs from the reset's.
     """
 
     def __init__(
@@ -121,16 +122,18 @@ class MpcEpisode:
         seed: int,
         steps: int,
         record_states: bool = False,
+        planner_seed: int | None = None,
     ):
         self.task, self.env, self.planner, self.evaluator = task, env, planner, evaluator
         self.seed, self.steps, self.record_states = seed, steps, record_states
+        self.planner_seed = seed if planner_seed is None else planner_seed
         self.records: list[StepRecord] = []
         self.observation, goals = self._reset()
         self.recorder = TrajectoryRecorder(self.observation, goals)
 
     def _reset(self):
         observation, _info = self.env.reset(seed=self.seed)
-        self.planner.reset(self.seed)
+        self.planner.reset(self.planner_seed)
         return self.task.observe(observation), self.task.goals(observation)
 
     @property

@@ -53,6 +53,10 @@ class MpcSettings(MethodSettings):
     """MPC episodes per trial (each with its own seed derived from the trial seed)."""
     max_steps: int | None = Field(None, ge=1)
     """Cut episodes to this many steps (smoke runs); default: the task's episode length."""
+    planner_seed_offset: int = Field(0, ge=0)
+    """Seed the planner's noise with the episode's seed plus this offset; the environment's reset keeps the
+    episode's seed. 0: one integer seeds both. Replaying the same start states with another offset tells a
+    hard start (fails again) from the planner's sampling (succeeds)."""
     round_steps: int = Field(100, ge=1)
     """Environment steps per round: the trial is checkpointed this often, and a lost process repeats at most
     this many steps. Results do not depend on it."""
@@ -192,7 +196,8 @@ class MpcProgram(Program):
         seed = episode_seed(self.trial.seed, self.episode_index)
         self.restarts_at_episode_start = self.pool.restarts
         self.episode_seconds = 0.0
-        return MpcEpisode(self.task, self.env, self.planner, self.pool, seed, self.steps)
+        planner_seed = seed + self.settings.planner_seed_offset
+        return MpcEpisode(self.task, self.env, self.planner, self.pool, seed, self.steps, planner_seed=planner_seed)
 
     def run_round(self, index: int) -> RoundReport:
         import time
