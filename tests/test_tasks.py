@@ -163,6 +163,37 @@ def test_relocate_planning_cost_leaves_out_the_palm_to_target_term_by_default(ta
     np.testing.assert_allclose(default.costs(model, lifted_batch) + palm_target, with_term.costs(model, lifted_batch))
 
 
+@pytest.mark.parametrize("name", ["relocate", "door"])
+def test_contact_margin_max_halves_the_margins_of_the_environment_and_the_planning_model(name):
+    plain, old_rule = make_task(name), make_task(name, {"contact_margin": "max"})
+    plain_env, old_env = plain.make_env(), old_rule.make_env()
+    np.testing.assert_array_equal(old_env.unwrapped.model.geom_margin, 0.5 * plain_env.unwrapped.model.geom_margin)
+    planning_model = old_rule.build_planning_model(old_env)
+    np.testing.assert_array_equal(planning_model.geom_margin, old_env.unwrapped.model.geom_margin)
+
+
+def test_contact_margin_max_rests_the_ball_half_a_millimetre_lower_in_env_and_rollouts():
+    """With MuJoCo 2's rule the ball-table contact keeps 0.5 mm stand-off instead of 1 mm; rollouts agree."""
+    from workers.rollout import BatchEvaluator
+
+    resting = {}
+    for rule in ("sum", "max"):
+        task = make_task("relocate", {"contact_margin": rule})
+        env = task.make_env()
+        env.reset(seed=0)
+        model = task.build_planning_model(env)
+        state = task.capture(env)
+        for _ in range(10):
+            task.step_env(env, np.zeros(task.action_dim))
+        with BatchEvaluator(task, model, threads=1) as evaluator:
+            batch = evaluator.simulate(state, np.zeros((1, 10, task.action_dim)))
+        ball_in_rollout = batch.frames[0, -1, task.frame_slice("Object")][2]
+        ball_in_env = env.unwrapped.data.xpos[env.unwrapped.model.body("Object").id][2]
+        assert ball_in_rollout == pytest.approx(ball_in_env, abs=1e-9)
+        resting[rule] = ball_in_env
+    assert resting["sum"] - resting["max"] == pytest.approx(5e-4, abs=1e-4)
+
+
 # ------------------------------------------------ MuJoCo >= 3.12 compatibility
 BALL_AND_FRIENDS = """
 <mujoco>

@@ -9,6 +9,11 @@ vectorised batch reward computes the same from sensor readings.
 
 Success is DAPG's: the goal condition holds on more than 25 steps of the
 episode.
+
+Contact margins: MuJoCo 2 (the thesis's mujoco-py environments) took the
+larger of two geoms' margins for their contact; MuJoCo adds them since 3.5.
+The option ``contact_margin: max`` restores the old stand-off (see
+:class:`AdroitOptions`).
 """
 
 from __future__ import annotations
@@ -24,10 +29,31 @@ SUCCESS_MIN_STEPS = 25
 """DAPG's success: goal achieved on more than this many steps of an episode."""
 
 
+class AdroitOptions(TaskOptions):
+    contact_margin: Literal["sum", "max"] = "sum"
+    """How two geoms' margins combine into their contact's margin: "sum", as MuJoCo does since 3.5 (1 mm
+    here: every geom of the DAPG models has margin 0.5 mm); "max", as in MuJoCo 2, which the thesis's
+    mujoco-py environments ran on (0.5 mm). "max" halves every geom margin, which is exactly the old rule
+    because all margins are equal (checked when the environment is built)."""
+
+
 class _AdroitTask(GroundTruthTask):
     frame_skip = 5
     episode_length = 200
     has_success = True
+    Options = AdroitOptions
+
+    def make_env(self):
+        env = super().make_env()
+        if self.options.contact_margin == "max":
+            margins = env.unwrapped.model.geom_margin
+            if np.ptp(margins) > 0:
+                raise ValueError(
+                    f"{self.name}: contact_margin 'max' needs equal geom margins, found {np.unique(margins)}"
+                )
+            # The planning model copies its parameters from this model (build_planning_model).
+            margins *= 0.5
+        return env
 
     def controls(self, model: mujoco.MjModel, state: SimState, actions: np.ndarray) -> np.ndarray:
         # The environment centres and scales normalised actions onto the ctrl ranges.
@@ -66,7 +92,7 @@ class _AdroitTask(GroundTruthTask):
         return StepOutcome(float(self._reward(q)), bool(self._achieved(q)), observation)
 
 
-class DoorOptions(TaskOptions):
+class DoorOptions(AdroitOptions):
     velocity_term: Literal["observation", "qvel"] = "observation"
     """Small term of the planning cost: "qvel" is DAPG's 1e-5 ||qvel||^2 exactly as in the reward;
     "observation" is 1e-5 ||o[-30:]||^2 over the last 30 entries of DAPG's observation (hand joints,
@@ -167,7 +193,7 @@ class DoorSparse(Door):
     description = "Adroit door without the palm-to-handle term (200 steps)"
 
 
-class RelocateOptions(TaskOptions):
+class RelocateOptions(AdroitOptions):
     palm_target_term: bool = False
     """Keep DAPG's -0.5 ||palm - target|| (while the ball is lifted) in the planning cost. The thesis authors'
     implementation leaves it out of its cost (the line is commented out), so the hand is pulled to the target
