@@ -582,17 +582,20 @@ def test_killed_trainer_mid_training_resumes_from_the_last_checkpoint(tmp_path, 
     killed = {}
 
     def kill_trainer_while_it_trains():
-        def planning_an_iteration():
+        def running():
             active = scheduler._active
-            if active and active[0].phase == "running" and active[0].round_index >= 2:
-                if active[0].progress.get("text", "").startswith("iteration"):
-                    return active[0]
-            return None
+            return active[0] if active and active[0].phase == "running" else None
 
-        attempt = wait_for(planning_an_iteration, timeout=300, interval=0.05, what="an iteration being planned")
-        trainer = attempt.group.workers["trainer"][0]
-        pid = ray.get(trainer.pid.remote(), timeout=60)  # idle while the runner plans
-        wait_for(lambda: "training" in attempt.progress.get("text", ""), timeout=300, interval=0.02, what="training")
+        # The pid first: an iteration's planning can be shorter than the scheduler's progress poll, so the
+        # only phase the test waits to see is a training call (seconds long), in round 2 or later.
+        attempt = wait_for(running, timeout=300, interval=0.05, what="the trial running")
+        pid = ray.get(attempt.group.workers["trainer"][0].pid.remote(), timeout=120)
+
+        def training_in_a_later_round():
+            text = attempt.progress.get("text", "")
+            return attempt.round_index >= 2 and text.startswith(f"round {attempt.round_index}: training")
+
+        wait_for(training_in_a_later_round, timeout=300, interval=0.02, what="training in round 2 or later")
         time.sleep(0.3)
         os.kill(pid, signal.SIGKILL)
         killed.update(pid=pid, round=attempt.round_index)
