@@ -194,6 +194,43 @@ def test_contact_margin_max_rests_the_ball_half_a_millimetre_lower_in_env_and_ro
     assert resting["sum"] - resting["max"] == pytest.approx(5e-4, abs=1e-4)
 
 
+def test_relocate_counts_a_ball_falling_in_the_simulator_as_free_flight():
+    import mujoco
+
+    from workers.tasks.adroit import STEP_SECONDS
+
+    task = make_task("relocate")
+    env = task.make_env()
+    env.reset(seed=0)
+    raw = env.unwrapped
+    assert raw.model.opt.timestep * raw.frame_skip == pytest.approx(STEP_SECONDS)
+    raw.data.qpos[raw.model.joint("OBJTz").qposadr[0]] += 0.3  # 0.3 m up: about 0.25 s of fall
+    mujoco.mj_forward(raw.model, raw.data)
+    observations = [task.observe(raw._get_obs())]
+    for _ in range(12):
+        observations.append(task.observe(task.step_env(env, np.zeros(task.action_dim)).observation))
+    metrics = task.episode_metrics(np.array(observations))
+    assert metrics["ball_flight_steps"] == 11  # every step pair of the fall
+    assert metrics["ball_off_table"] == 0.0
+
+
+def test_relocate_flight_metrics_tell_a_batted_ball_from_a_resting_or_lost_one():
+    from workers.tasks.adroit import STEP_SECONDS
+
+    task = make_task("relocate")
+    t = np.arange(40) * STEP_SECONDS
+    observations = np.zeros((40, 39))
+    observations[:, -3:] = [0.3, 0.2, -0.2]  # at rest on the table, away from the target
+    assert task.episode_metrics(observations) == {"ball_flight_steps": 0, "goal_flight_steps": 0, "ball_off_table": 0}
+    # Batted up through the target: a parabola whose middle passes within 0.1 of it.
+    observations[:, -3:] = np.stack([0.5 * (t - 0.2), 0 * t, 1.5 * (t - 0.2) - 4.905 * (t - 0.2) ** 2], axis=1)
+    metrics = task.episode_metrics(observations)
+    near = np.linalg.norm(observations[1:-1, -3:], axis=1) < 0.1
+    assert metrics["ball_flight_steps"] == 38 and metrics["goal_flight_steps"] == near.sum() > 0
+    observations[-1, -3:] = [0.4, 1.6, -1.2]  # ends on the floor
+    assert task.episode_metrics(observations)["ball_off_table"] == 1.0
+
+
 # ------------------------------------------------ MuJoCo >= 3.12 compatibility
 BALL_AND_FRIENDS = """
 <mujoco>

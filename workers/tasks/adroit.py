@@ -193,6 +193,16 @@ class DoorSparse(Door):
     description = "Adroit door without the palm-to-handle term (200 steps)"
 
 
+STEP_SECONDS = 0.01
+"""Seconds per Relocate step: DAPG's frame_skip 5 of the model's 0.002 s timestep."""
+FREE_FLIGHT_TOLERANCE = 0.5
+"""m/s^2: a step pair whose ball acceleration is within this of gravity alone (and horizontally of 0) counts as
+free flight; a resting ball (0) and a ball pushed by the hand are far outside it."""
+OFF_TABLE_DROP = 0.5
+"""m: a ball ending this far below the target has left the table (the target is 0.15-0.35 m above the table
+top; on the table the ball ends at most 0.32 m below it, on the floor 1.1-1.3 m)."""
+
+
 class RelocateOptions(AdroitOptions):
     palm_target_term: bool = False
     """Keep DAPG's -0.5 ||palm - target|| (while the ball is lifted) in the planning cost. The thesis authors'
@@ -249,6 +259,22 @@ class Relocate(_AdroitTask):
 
     def _achieved(self, q):
         return np.linalg.norm(q["ball"] - q["target"], axis=-1) < 0.1
+
+    def episode_metrics(self, observations):
+        """How the ball got to the target: ball_flight_steps (steps in free flight, no contact), goal_flight_steps
+        (goal steps with the ball in free flight: batted up rather than held), ball_off_table (0/1: the ball
+        ended on the floor, out of the hand's reach). From the observation's ball - target (the last 3)."""
+        ball = np.asarray(observations)[:, -3:]  # the target is fixed within an episode
+        acceleration = np.diff(ball, n=2, axis=0) / STEP_SECONDS**2
+        gravity_only = (np.abs(acceleration[:, 2] + 9.81) < FREE_FLIGHT_TOLERANCE) & (
+            np.linalg.norm(acceleration[:, :2], axis=1) < FREE_FLIGHT_TOLERANCE
+        )
+        at_goal = np.linalg.norm(ball[1:-1], axis=1) < 0.1
+        return {
+            "ball_flight_steps": float(gravity_only.sum()),
+            "goal_flight_steps": float((gravity_only & at_goal).sum()),
+            "ball_off_table": float(ball[-1, 2] < -OFF_TABLE_DROP),
+        }
 
     def costs(self, model, batch):
         q = self._batch_quantities(model, batch)
