@@ -193,6 +193,8 @@ class DoorSparse(Door):
     description = "Adroit door without the palm-to-handle term (200 steps)"
 
 
+GOAL_RADIUS = 0.1
+"""m: DAPG's Relocate goal holds while the ball is this close to the target."""
 STEP_SECONDS = 0.01
 """Seconds per Relocate step: DAPG's frame_skip 5 of the model's 0.002 s timestep."""
 FREE_FLIGHT_TOLERANCE = 0.5
@@ -258,7 +260,7 @@ class Relocate(_AdroitTask):
         return reward
 
     def _achieved(self, q):
-        return np.linalg.norm(q["ball"] - q["target"], axis=-1) < 0.1
+        return np.linalg.norm(q["ball"] - q["target"], axis=-1) < GOAL_RADIUS
 
     def episode_metrics(self, observations):
         """How the ball got to the target: ball_flight_steps (steps in free flight, no contact), goal_flight_steps
@@ -269,7 +271,7 @@ class Relocate(_AdroitTask):
         gravity_only = (np.abs(acceleration[:, 2] + 9.81) < FREE_FLIGHT_TOLERANCE) & (
             np.linalg.norm(acceleration[:, :2], axis=1) < FREE_FLIGHT_TOLERANCE
         )
-        at_goal = np.linalg.norm(ball[1:-1], axis=1) < 0.1
+        at_goal = np.linalg.norm(ball[1:-1], axis=1) < GOAL_RADIUS
         return {
             "ball_flight_steps": float(gravity_only.sum()),
             "goal_flight_steps": float((gravity_only & at_goal).sum()),
