@@ -211,14 +211,20 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
 @pytest.mark.parametrize(
     "sweep, first, last, earlier_reading",
     [
-        ("fetch_pick_place", "a5f5dd7184910803", "b51fb7a40058f900", {}),
-        ("razer_bridge_maze", "d52a4c09b582765a", "df252c548e89626c", {"model": {"keep_function": False}}),
+        ("fetch_pick_place", "a5f5dd7184910803", "b51fb7a40058f900", {"planner": {"noise_release": "2.1"}}),
+        (
+            "razer_bridge_maze",
+            "d52a4c09b582765a",
+            "df252c548e89626c",
+            {"model": {"keep_function": False}, "planner": {"noise_release": "2.1"}},
+        ),
     ],
 )
 def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last, earlier_reading, tmp_path):
     """Keys of shipped sweeps as they were before `planner.noise_release` existed: --resume still finds their
-    trials. Setting the new field to anything else is a different trial. A new default that changes the
-    behaviour (the ensemble's `keep_function`) makes new trials; the earlier ones stay reachable at the old value."""
+    trials at the behaviour they ran with. A new default that changes the behaviour (the colored noise's
+    release "1.1"; the ensemble's `keep_function`) makes new trials; the earlier ones stay reachable at the old
+    value."""
     data = yaml.safe_load((ROOT / "sweeps" / "paper" / f"{sweep}.yaml").read_text())
     shipped = load_sweep(ROOT / "sweeps" / "paper" / f"{sweep}.yaml").trials
     for section, values in earlier_reading.items():
@@ -241,16 +247,17 @@ def test_apex_trials_of_the_earlier_readings_keep_their_keys(tmp_path):
     sweep["base"]["window_counts"] = "episodes"
     sweep["base"]["relabel_restart"] = "chunk"
     sweep["base"].setdefault("policy", {})["keep_function"] = False
+    sweep["base"].setdefault("planner", {})["noise_release"] = "2.1"
     path = tmp_path / "apex_fetch.yaml"
     path.write_text(yaml.safe_dump(sweep, sort_keys=False))
     trials = load_sweep(path).trials
     assert (trials[0].key, trials[-1].key) == earlier
 
 
-def test_a_non_default_noise_release_is_another_trial(tmp_path):
+def test_the_noise_releases_are_different_trials_and_the_default_is_1_1(tmp_path):
     keys = [
         load_sweep(write_sweep(tmp_path, f"n{i}", base={"planner": {"budget": 50, **release}})).trials[0].key
-        for i, release in enumerate(({}, {"noise_release": "2.1"}, {"noise_release": "1.1"}))
+        for i, release in enumerate(({}, {"noise_release": "1.1"}, {"noise_release": "2.1"}))
     ]
     assert keys[0] == keys[1] != keys[2]
 

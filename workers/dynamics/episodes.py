@@ -66,7 +66,7 @@ class EpisodeOutcome(NamedTuple):
 
 
 def run_random_episode(
-    task, env, seed: int, beta: float, scale: float = 1.0, release: str = "2.1"
+    task, env, seed: int, beta: float, scale: float = 1.0, release: str = "1.1"
 ) -> EpisodeOutcome:
     """An episode of colored-noise actions (exponent ``beta``, std ``scale``, clipped to [-1, 1]), drawn as the
     colorednoise ``release`` the planner follows does (workers/planning/noise.py)."""

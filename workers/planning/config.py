@@ -116,10 +116,11 @@ class PlannerConfig(BaseModel):
     """Initial standard deviation sigma_init, in units of half the action range (Table 5); reset every step."""
     noise_beta: float | None = Field(None, ge=0, le=5)
     """Colored-noise exponent beta, PSD ~ 1/f^beta (eq. 10); 0 is white. Default: the task's Table 6 value for icem."""
-    noise_release: Literal["2.1", "1.1"] = "2.1"
-    """Which colorednoise release the colored noise follows: "2.1" (from June 2022) doubles the variance of the
-    constant (DC) and Nyquist terms; "1.1", as the authors' public iCEM code ran, does not (workers/planning/noise.py).
-    At beta 3 over h = 30 "2.1" gives the per-sequence constant offset twice the variance."""
+    noise_release: Literal["1.1", "2.1"] = "1.1"
+    """Which colorednoise release the colored noise follows: "1.1", as the authors' public iCEM code ran (the
+    thesis's figures), leaves the constant (DC) and Nyquist terms as drawn; "2.1" (from June 2022) doubles their
+    variance (workers/planning/noise.py). At beta 3 over h = 30 "2.1" gives the per-sequence constant offset twice
+    the variance. On Fetch and Relocate "1.1" reaches Table 3 and "2.1" falls short (README, "Measured")."""
     momentum: float | None = Field(None, ge=0, lt=1)
     """Momentum alpha of the refit: mu <- alpha mu + (1 - alpha) mu_elites, same for sigma (section 3.1.1)."""
     population_decay: float | None = Field(None, ge=1)

@@ -11,7 +11,7 @@ NOISE_RELEASES = ("2.1", "1.1")
 
 
 def colored_noise(
-    beta: float, shape: tuple[int, ...], rng: np.random.Generator, release: str = "2.1"
+    beta: float, shape: tuple[int, ...], rng: np.random.Generator, release: str = "1.1"
 ) -> np.ndarray:
     """Gaussian noise with power spectral density ~ 1/f^beta along the last axis.
 
