@@ -270,8 +270,8 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
 at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a
 setting does not change the identity of trials already run (and ``--resume`` still finds them). Where the
 new default changed the behaviour (APEX's ``window_counts`` and ``relabel_restart``; ``keep_function``;
-``noise_release``), trials
-of the new default get new keys and the old trials stay reachable by setting the old value."""
+``noise_release``), trials of the new default get new keys and the old trials stay reachable by setting the old
+value."""
 
 
 def _without_neutral_defaults(settings: Any) -> Any:

@@ -30,7 +30,7 @@ from workers.data import Trajectory, TrajectoryRecorder
 from workers.dynamics.settings import RazerSettings
 from workers.planning import CEMPlanner, PlannerConfig
 from workers.planning.icem import CostBatch
-from workers.planning.noise import colored_noise
+from workers.planning.noise import DEFAULT_NOISE_RELEASE, colored_noise
 
 COST_TERMS = ("c", "c_A", "c_E", "c_S", "u_A", "u_E")
 """The cost terms of Alg. 5 line 7 whose means over the executed plans are reported, and the unweighted
@@ -66,7 +66,7 @@ class EpisodeOutcome(NamedTuple):
 
 
 def run_random_episode(
-    task, env, seed: int, beta: float, scale: float = 1.0, release: str = "1.1"
+    task, env, seed: int, beta: float, scale: float = 1.0, release: str = DEFAULT_NOISE_RELEASE
 ) -> EpisodeOutcome:
     """An episode of colored-noise actions (exponent ``beta``, std ``scale``, clipped to [-1, 1]), drawn as the
     colorednoise ``release`` the planner follows does (workers/planning/noise.py)."""

@@ -14,6 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
+from workers.planning.noise import DEFAULT_NOISE_RELEASE
+
 Algorithm = Literal["icem", "cem", "cem_mpc", "cem_pets"]
 BoundHandling = Literal["clip", "truncate", "truncate_2sigma"]
 
@@ -116,7 +118,7 @@ class PlannerConfig(BaseModel):
     """Initial standard deviation sigma_init, in units of half the action range (Table 5); reset every step."""
     noise_beta: float | None = Field(None, ge=0, le=5)
     """Colored-noise exponent beta, PSD ~ 1/f^beta (eq. 10); 0 is white. Default: the task's Table 6 value for icem."""
-    noise_release: Literal["1.1", "2.1"] = "1.1"
+    noise_release: Literal["1.1", "2.1"] = DEFAULT_NOISE_RELEASE
     """Which colorednoise release the colored noise follows: "1.1", as the authors' public iCEM code ran (the
     thesis's figures), leaves the constant (DC) and Nyquist terms as drawn; "2.1" (from June 2022) doubles their
     variance (workers/planning/noise.py). At beta 3 over h = 30 "2.1" gives the per-sequence constant offset twice
