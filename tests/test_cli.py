@@ -218,6 +218,8 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
             "df252c548e89626c",
             {"model": {"keep_function": False}, "planner": {"noise_release": "2.1"}},
         ),
+        # Pins release "2.1", the release of the trials it compares with: its keys are those of the stored runs.
+        ("relocate_contact_margin", "336241e8e1476ee8", "d77398c6ac6c00e9", {}),
     ],
 )
 def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last, earlier_reading, tmp_path):
