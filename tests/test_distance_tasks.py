@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import mujoco
 import numpy as np
 import pytest
@@ -121,3 +124,16 @@ def test_point_maze_rooms_and_action_repeat(envs):
             obs, achieved, _ = t.split(observation)
         reached[label] = bool(t.is_success(achieved, goal))
     assert reached == {"repeat": True, "no_repeat": False}
+
+
+def test_point_maze_leaves_no_model_file_behind():
+    """gymnasium-robotics writes the maze's MJCF to the temp directory; the task removes it once it is loaded."""
+    env = make_goal_task("point_maze", {}).make_env()
+    try:
+        written = Path(env.unwrapped.tmp_xml_file_path)
+        assert written.parent == Path(tempfile.gettempdir())
+        assert not written.exists()
+        env.reset(seed=0)
+        env.step(np.zeros(2))
+    finally:
+        env.close()

@@ -207,6 +207,9 @@ class PointMaze(GoalTask):
             reset_target=False,
             max_episode_steps=self.episode_length * self.options.action_repeat,
         )
+        # gymnasium-robotics writes the maze's MJCF to a uniquely named file in the temp directory and never
+        # removes it; the model is loaded by now, so without this every env (one per worker and trial) leaves one.
+        Path(env.unwrapped.tmp_xml_file_path).unlink(missing_ok=True)
         return ActionRepeat(env, self.options.action_repeat) if self.options.action_repeat > 1 else env
 
     def achieved_goal(self, observations: np.ndarray) -> np.ndarray:
