@@ -264,6 +264,42 @@ def test_the_noise_releases_are_different_trials_and_the_default_is_1_1(tmp_path
     assert keys[0] == keys[1] != keys[2]
 
 
+class PastCosts:
+    """A store stand-in: the core-seconds per step of past runs, by their exact tags."""
+
+    def __init__(self, *runs: tuple[dict[str, str], float]):
+        self.runs, self.asked = runs, []
+
+    def past_costs(self, tags):
+        self.asked.append(dict(tags))
+        return [cost for run_tags, cost in self.runs if run_tags == tags]
+
+
+def test_time_estimates_reuse_past_runs_only_at_the_same_horizon_and_particles(tmp_path, monkeypatch):
+    """A step's cost grows with the horizon and the particles, so runs that differ in either are not reused."""
+    from orchestrator.plan import cost_per_work
+    from workers.methods.mpc import MpcProgram
+
+    monkeypatch.setattr(MpcProgram, "calibrate", classmethod(lambda cls, spec, cpus: None))
+    icem_50 = {"method": "mpc", "algorithm": "icem", "budget": "50"}
+    store = PastCosts(
+        ({"task": "point_reach", **icem_50, "horizon": "10"}, 0.25),
+        ({"task": "noisy_fetch_pick_place", **icem_50, "horizon": "10", "particles": "4"}, 3.0),
+    )
+
+    def estimate(task, horizon=10, **base):
+        name = f"{task}_{horizon}_{len(store.asked)}"
+        sweep = write_sweep(tmp_path, name, task=task, base={"planner": {"budget": 50, "horizon": horizon}, **base})
+        loaded = load_sweep(sweep)
+        return cost_per_work(loaded, loaded.trials[0], store, {})
+
+    assert estimate("point_reach") == (0.25, "1 past run(s)")
+    assert estimate("point_reach", horizon=20) is None and store.asked[-1]["horizon"] == "20"
+    assert estimate("noisy_fetch_pick_place", ensemble={"particles": 4}) == (3.0, "1 past run(s)")
+    assert estimate("noisy_fetch_pick_place", ensemble={"particles": 16}) is None
+    assert store.asked[-1]["particles"] == "16"
+
+
 def test_random_parameters_are_repeatable(tmp_path):
     fields = dict(
         parameters={"planner.sigma_init": {"distribution": "uniform", "low": 0.2, "high": 0.8}}, num_samples=3

@@ -159,8 +159,11 @@ class MpcProgram(Program):
 
     @classmethod
     def labels(cls, trial: TrialSpec) -> dict[str, str]:
-        planner = trial.settings.planner
-        return {"algorithm": planner.algorithm, "budget": str(planner.budget)}
+        """Algorithm and budget name the trial; horizon and particles are tagged too because the cost of a step
+        grows with each, so a sweep's time estimate only reuses past runs that simulated as much per step."""
+        planner, ensemble = trial.settings.planner, trial.settings.ensemble
+        labels = {"algorithm": planner.algorithm, "budget": str(planner.budget), "horizon": str(planner.horizon)}
+        return labels | ({"particles": str(ensemble.particles)} if ensemble is not None else {})
 
     @classmethod
     def label_text(cls, labels) -> list[str]:
