@@ -220,6 +220,7 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
         ),
         # Pins release "2.1", the release of the trials it compares with: its keys are those of the stored runs.
         ("relocate_contact_margin", "336241e8e1476ee8", "d77398c6ac6c00e9", {}),
+        ("razer_noisy_fetch", "ebed66b6819b91c3", "58604de3f2ccae60", {}),  # pins "2.1" too, as its rows ran
     ],
 )
 def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last, earlier_reading, tmp_path):
