@@ -3,9 +3,10 @@
 Costs are in core-seconds per unit of the method's work (MPC: per environment
 step), taken from the store's finished trials of the same task, method and
 labels (for MPC: algorithm, budget, horizon and particles), or, when there
-are none, from a few seconds of calibration on this machine. Wall time follows the scheduler's own
-layout: how many trials run at once with how many CPUs each, on this machine
-or on a cluster of N CPUs, plus Ray's start and each trial's start-up.
+are none, from a few seconds of calibration on this machine. Wall time
+follows the scheduler's own layout: how many trials run at once with how
+many CPUs each, on this machine or on a cluster of N CPUs, plus Ray's start
+and each trial's start-up.
 """
 
 from __future__ import annotations
