@@ -497,8 +497,16 @@ def budget_figure(summary: Summary):
     return figure
 
 
+def interval_caption(summary: Summary) -> str:
+    """What the bars of a figure show: a rate's Wilson interval is over episodes, a mean's over seeds."""
+    metric = summary.metric.replace("_", " ")
+    if summary.groups and all(g.successes is not None for g in summary.groups):
+        return f"{metric} (rate over all episodes, 95% Wilson interval)"
+    return f"{metric} (mean over seeds, 95% bootstrap interval from three seeds on)"
+
+
 def variant_figure(summary: Summary):
-    """One bar per variant with its standard error, per task (the style of the thesis's Fig. 7 ablations)."""
+    """One bar per variant with its 95% interval, per task (the style of the thesis's Fig. 7 ablations)."""
     tasks = sorted({g.task for g in summary.groups})
     longest = max(len(g.name()) for g in summary.groups)
     width = max(8.0, 4.0 + 0.075 * longest)  # room for the labels, which name every switched setting
@@ -515,7 +523,7 @@ def variant_figure(summary: Summary):
             axis.legend(fontsize=8)
         axis.set_yticks(positions, names)
         axis.invert_yaxis()
-        axis.set_xlabel(f"{summary.metric.replace('_', ' ')} (mean, 95% interval over seeds)")
+        axis.set_xlabel(interval_caption(summary))
         axis.set_title(task)
         axis.grid(alpha=0.3, axis="x")
     figure.tight_layout()

@@ -150,6 +150,13 @@ def test_summary_intervals_follow_the_runs():
     assert group.mean == 2.0 and group.interval.low < 2.0 < group.interval.high and group.comparison is None
 
 
+def test_figures_say_which_interval_their_bars_show():
+    rates = report.summarize([report_run("icem", v, "success_rate") for v in (1, 0, 1)], "success", references=[])
+    assert "Wilson" in report.interval_caption(rates) and "episodes" in report.interval_caption(rates)
+    returns = report.summarize([report_run("icem", v) for v in (1.0, 2.0, 3.0)], "episode_return", references=[])
+    assert "bootstrap" in report.interval_caption(returns) and "seeds" in report.interval_caption(returns)
+
+
 @pytest.mark.parametrize(
     ("values", "starred", "note"),
     [
