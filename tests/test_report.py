@@ -295,6 +295,24 @@ def test_mbrl_report_curves_show_coverage_where_the_task_logs_it():
     assert panels({"id": {"episode_return": logged["episode_return"]}}) == ["episode_return"]
 
 
+def test_apex_report_curves_show_the_evaluated_final_policy_where_the_trial_evaluated_it():
+    """``evaluation_episodes`` score each iteration's final policy; the report draws them beside expert and policy."""
+    from orchestrator.tracking import TrialRun
+    from workers.methods.apex import ApexProgram
+
+    params = {"method": "apex", "task": "halfcheetah_running", "seed": "0"}
+    run = TrialRun("id", "key", FINISHED, "name", params, {}, {"final_policy_return": 2.0})
+    summary = report.summarize([run], "policy_return", references=[])
+    logged = {key: [(0, 1.0), (1, 2.0)] for key in ("expert_return", "policy_return", "evaluation_return")}
+
+    def panels(histories):
+        figure = report.curves_figure(summary, histories, ApexProgram.curves, ApexProgram.curve_step)
+        return [axis.get_ylabel() for axis in figure.axes]
+
+    assert panels({"id": logged}) == ["expert_return", "policy_return", "evaluation_return"]
+    assert "evaluation_return" not in panels({"id": {"expert_return": logged["expert_return"]}})
+
+
 def test_a_paired_success_comparison_counts_only_the_seeds_where_the_variants_disagree():
     variant = np.array([1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0])
     baseline = np.array([1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 1, 0])

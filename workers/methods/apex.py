@@ -179,7 +179,9 @@ class ApexProgram(Program):
     }
     """Sweep metric -> summary key: each figure averaged over the last SUMMARY_ITERATIONS iterations."""
     label_paths = {"budget": ("planner.budget",)}
-    curves = ("expert_return", "policy_return", "expert_success", "policy_success", "evaluation_success")
+    curves = (
+        "expert_return", "policy_return", "evaluation_return", "expert_success", "policy_success", "evaluation_success",
+    )  # fmt: skip
     curve_step = "APEX iteration"
     """Per-iteration metrics reports draw against the iteration (Fig. 14; used by the core's reports)."""
     role_names = ("relabel", "trainer")
