@@ -23,7 +23,7 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from orchestrator import statistics  # noqa: E402
+from orchestrator import report_mbrl, statistics  # noqa: E402
 from orchestrator.references import Reference, find, same_param  # noqa: E402
 from orchestrator.tracking import TrialRun  # noqa: E402
 from workers.methods import METHODS  # noqa: E402
@@ -589,8 +589,7 @@ def write_files(summary: Summary, directory: Path, histories: Histories | None =
         paths.append(directory / "variants.png")
         figure.savefig(paths[-1], dpi=110)
         plt.close(figure)
-    if any(g.method == "mbrl" for g in summary.groups):
-        from orchestrator import report_mbrl  # chapter 5's figures (Fig. 19a/b, 37a)
-
+    if any(g.method == "mbrl" or report_mbrl.PENALTY_SETTING in g.setting for g in summary.groups):
+        # chapter 5's figures (Fig. 19a/b, 37a)
         paths += report_mbrl.write_files(summary, directory)
     return paths

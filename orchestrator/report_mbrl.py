@@ -1,4 +1,5 @@
-"""Plots of ``mbrl`` sweeps (thesis chapter 5), as pure functions of summarised trial runs.
+"""Plots of chapter 5's sweeps (``mbrl``, and ``mpc`` on noisy-simulator ensembles), as pure functions of
+summarised trial runs.
 
 * :func:`success_figure`: success rate of the frozen model against the aleatoric penalty weight w_A, PETS
   as a reference line (Fig. 19a), mean +- sem over the seeds of each configuration.
@@ -6,6 +7,8 @@
   task option such as the noise strength (Fig. 19b).
 * :func:`coverage_figure`: final state coverage of each configuration (the end point of Fig. 37a); the whole
   coverage-over-iterations curves are among the program's report curves (``MbrlProgram.curves``).
+* :func:`penalty_figure`: the sweep's metric against ``ensemble.aleatoric_weight`` for ``mpc`` sweeps that plan
+  on an ensemble of noisy simulators (Noisy-FetchPickAndPlace: box drops against w_A, Fig. 19b as drawn).
 
 The frozen rows come from the trials' summary metrics ``frozen/<row>/<key>`` (workers/methods/mbrl.py):
 ``pets`` and ``razer_wA_<w>`` rows with ``success_rate``, ``mean_return``, ``falls_rate``,
@@ -191,13 +194,48 @@ def coverage_figure(summary: Any):
     return figure
 
 
+PENALTY_SETTING = "ensemble.aleatoric_weight"
+"""The sweep setting that is RAZER's w_A when ``mpc`` plans on a noisy-simulator ensemble (w_A = 0: PETS)."""
+
+
+def penalty_figure(summary: Any):
+    """Fig. 19b as the thesis draws it: the sweep's metric against w_A, one line per other setting; None unless
+    the configurations differ in w_A. Bars are the groups' 95% intervals (Wilson over episodes for rates)."""
+    weights = {g.setting[PENALTY_SETTING] for g in summary.groups if PENALTY_SETTING in g.setting}
+    if len(weights) < 2:
+        return None
+    lines: dict[str, list[Any]] = defaultdict(list)
+    for group in summary.groups:
+        if PENALTY_SETTING in group.setting:
+            rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k != PENALTY_SETTING)
+            lines[" ".join(filter(None, [group.task, rest]))].append(group)
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for name, members in sorted(lines.items()):
+        members.sort(key=lambda g: g.setting[PENALTY_SETTING])
+        low = [g.mean - g.interval.low if math.isfinite(g.interval.low) else 0.0 for g in members]
+        high = [g.interval.high - g.mean if math.isfinite(g.interval.high) else 0.0 for g in members]
+        axis.errorbar([g.setting[PENALTY_SETTING] for g in members], [g.mean for g in members], yerr=[low, high],
+                      marker="o", capsize=3, label=name)  # fmt: skip
+    axis.set_xlabel("aleatoric penalty w_A (0: PETS)")
+    axis.set_ylabel(summary.metric.replace("_", " "))
+    if all(g.successes is not None for g in summary.groups):
+        axis.set_ylim(-0.02, 1.02)
+    axis.set_title("against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)", fontsize=9)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+    figure.tight_layout()
+    return figure
+
+
 def write_files(summary: Any, directory: Path) -> list[Path]:
-    """The mbrl plots that fit the sweep (frozen_success.png, failure_rate.png, coverage.png) in ``directory``."""
+    """The chapter 5 plots that fit the sweep (frozen_success.png, failure_rate.png, coverage.png,
+    penalty.png) in ``directory``."""
     paths = []
     for name, make in (
         ("frozen_success", success_figure),
         ("failure_rate", drop_rate_figure),
         ("coverage", coverage_figure),
+        ("penalty", penalty_figure),
     ):
         figure = make(summary)
         if figure is None:

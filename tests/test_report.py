@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 from pathlib import Path
 
@@ -311,6 +312,28 @@ def test_apex_report_curves_show_the_evaluated_final_policy_where_the_trial_eval
 
     assert panels({"id": logged}) == ["expert_return", "policy_return", "evaluation_return"]
     assert "evaluation_return" not in panels({"id": {"expert_return": logged["expert_return"]}})
+
+
+def test_noisy_fetch_drop_rates_are_drawn_against_the_aleatoric_penalty(tmp_path):
+    """Fig. 19b as drawn in the thesis: one point per w_A (0 is PETS), a line per other setting, Wilson bars."""
+    from orchestrator import report_mbrl
+    from orchestrator.tracking import TAG_OVERRIDE, TAG_VARIANT, TrialRun
+
+    def run(weight: float, particles: int, drops: float):
+        tags = {TAG_VARIANT: f"w{weight}-{particles}", f"{TAG_OVERRIDE}ensemble.aleatoric_weight": json.dumps(weight),
+                f"{TAG_OVERRIDE}ensemble.particles": json.dumps(particles)}  # fmt: skip
+        params = {"method": "mpc", "task": "noisy_fetch_pick_place", "seed": "0", "episodes": "20"}
+        return TrialRun(f"{weight}-{particles}", "key", FINISHED, "name", params, tags, {"mean_box_drops": drops})
+
+    runs = [run(0.0, 4, 0.3), run(0.5, 4, 0.3), run(0.0, 16, 0.25), run(0.5, 16, 0.1)]
+    summary = report.summarize(runs, "box_drops", mode="min", references=[])
+    figure = report_mbrl.penalty_figure(summary)
+    lines = {container.get_label(): container.lines[0] for container in figure.axes[0].containers}
+    assert sorted(lines) == [f"noisy_fetch_pick_place ensemble.particles={n}" for n in (16, 4)]
+    assert lines["noisy_fetch_pick_place ensemble.particles=16"].get_ydata().tolist() == pytest.approx([0.25, 0.1])
+    assert lines["noisy_fetch_pick_place ensemble.particles=4"].get_xdata().tolist() == [0.0, 0.5]
+    assert report_mbrl.penalty_figure(report.summarize(runs[:1], "box_drops", references=[])) is None
+    assert tmp_path / "penalty.png" in report.write_files(summary, tmp_path)
 
 
 def test_a_paired_success_comparison_counts_only_the_seeds_where_the_variants_disagree():
