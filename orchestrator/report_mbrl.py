@@ -126,6 +126,15 @@ def success_figure(summary: Any):
     return figure
 
 
+def _finished(figure, axis, title: str):
+    """Title, grid and legend of a one-axis chapter 5 figure, laid out."""
+    axis.set_title(title, fontsize=9)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=7)
+    figure.tight_layout()
+    return figure
+
+
 def _swept_task_option(summary: Any) -> str | None:
     """The numeric task option the configurations differ in (e.g. task_options.wind_max), if one."""
     options = defaultdict(set)
@@ -167,11 +176,7 @@ def drop_rate_figure(summary: Any, option: str | None = None):
     axis.set_xlabel(option.removeprefix("task_options."))
     axis.set_ylabel(key_used.replace("_", " "))
     axis.set_ylim(-0.02, 1.02)
-    axis.set_title("frozen rows: failure rate against the noise (thesis Fig. 19b: RAZER < 0.2)", fontsize=9)
-    axis.grid(alpha=0.3)
-    axis.legend(fontsize=7)
-    figure.tight_layout()
-    return figure
+    return _finished(figure, axis, "frozen rows: failure rate against the noise (thesis Fig. 19b: RAZER < 0.2)")
 
 
 def coverage_figure(summary: Any):
@@ -220,11 +225,7 @@ def penalty_figure(summary: Any):
     axis.set_ylabel(summary.metric.replace("_", " "))
     if all(g.successes is not None for g in summary.groups):
         axis.set_ylim(-0.02, 1.02)
-    axis.set_title("against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)", fontsize=9)
-    axis.grid(alpha=0.3)
-    axis.legend(fontsize=7)
-    figure.tight_layout()
-    return figure
+    return _finished(figure, axis, "against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)")
 
 
 def write_files(summary: Any, directory: Path) -> list[Path]:
