@@ -454,9 +454,7 @@ def _paired_cells(group: Group, cell) -> list[Any]:
 
 def _error_bars(groups: list[Group]) -> np.ndarray:
     """(2, n) distances from each mean to its 95% interval (0 where there is none)."""
-    low = np.array([g.mean - g.interval.low if math.isfinite(g.interval.low) else 0.0 for g in groups])
-    high = np.array([g.interval.high - g.mean if math.isfinite(g.interval.high) else 0.0 for g in groups])
-    return np.vstack([low, high])
+    return statistics.error_bars([g.interval for g in groups])
 
 
 def budget_figure(summary: Summary):

@@ -29,6 +29,8 @@ matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from orchestrator import statistics  # noqa: E402
+
 FAILURE_KEYS = ("box_drops_rate", "falls_rate")
 """Failure rates of frozen rows, in order of preference (Noisy-FetchPickAndPlace drops boxes, BridgeMaze falls)."""
 
@@ -217,10 +219,9 @@ def penalty_figure(summary: Any):
     figure, axis = plt.subplots(figsize=(6, 4))
     for name, members in sorted(lines.items()):
         members.sort(key=lambda g: g.setting[PENALTY_SETTING])
-        low = [g.mean - g.interval.low if math.isfinite(g.interval.low) else 0.0 for g in members]
-        high = [g.interval.high - g.mean if math.isfinite(g.interval.high) else 0.0 for g in members]
-        axis.errorbar([g.setting[PENALTY_SETTING] for g in members], [g.mean for g in members], yerr=[low, high],
-                      marker="o", capsize=3, label=name)  # fmt: skip
+        axis.errorbar([g.setting[PENALTY_SETTING] for g in members], [g.mean for g in members],
+                      yerr=statistics.error_bars([g.interval for g in members]), marker="o", capsize=3,
+                      label=name)  # fmt: skip
     axis.set_xlabel("aleatoric penalty w_A (0: PETS)")
     axis.set_ylabel(summary.metric.replace("_", " "))
     if all(g.successes is not None for g in summary.groups):

@@ -29,6 +29,7 @@ effects.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -47,6 +48,14 @@ class Interval(NamedTuple):
     estimate: float
     low: float
     high: float
+
+
+def error_bars(intervals: Sequence[Interval]) -> np.ndarray:
+    """(2, n) distances from each estimate down and up to its interval, for matplotlib's yerr/xerr (0 where
+    there is no interval)."""
+    low = [i.estimate - i.low if math.isfinite(i.low) else 0.0 for i in intervals]
+    high = [i.high - i.estimate if math.isfinite(i.high) else 0.0 for i in intervals]
+    return np.array([low, high], dtype=float).reshape(2, len(intervals))
 
 
 class Comparison(NamedTuple):
