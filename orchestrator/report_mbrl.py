@@ -203,6 +203,17 @@ def coverage_figure(summary: Any):
 
 PENALTY_SETTING = "ensemble.aleatoric_weight"
 """The sweep setting that is RAZER's w_A when ``mpc`` plans on a noisy-simulator ensemble (w_A = 0: PETS)."""
+PARTICLES_SETTING = "ensemble.particles"
+"""Particles per sequence: a line's drop rate depends on it (README, Fig. 19b), so every line names it."""
+
+
+def _particles(group: Any) -> str:
+    """``ensemble.particles=P`` of a group whose trials all ran with P particles, from the resolved settings
+    (a count set in the sweep's base is no swept setting); empty when the setting names it or it varies."""
+    if PARTICLES_SETTING in group.setting:
+        return ""
+    counts = {trial.params.get(PARTICLES_SETTING) for trial in group.trials}
+    return f"{PARTICLES_SETTING}={counts.pop()}" if len(counts) == 1 and None not in counts else ""
 
 
 def penalty_figure(summary: Any):
@@ -215,7 +226,7 @@ def penalty_figure(summary: Any):
     for group in summary.groups:
         if PENALTY_SETTING in group.setting:
             rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k != PENALTY_SETTING)
-            lines[" ".join(filter(None, [group.task, rest]))].append(group)
+            lines[" ".join(filter(None, [group.task, _particles(group), rest]))].append(group)
     figure, axis = plt.subplots(figsize=(6, 4))
     for name, members in sorted(lines.items()):
         members.sort(key=lambda g: g.setting[PENALTY_SETTING])

@@ -326,6 +326,8 @@ def test_noisy_fetch_drop_rates_are_drawn_against_the_aleatoric_penalty(tmp_path
         return TrialRun(f"{weight}-{particles}", "key", FINISHED, "name", params, tags, {"mean_box_drops": drops})
 
     runs = [run(0.0, 4, 0.3), run(0.5, 4, 0.3), run(0.0, 16, 0.25), run(0.5, 16, 0.1)]
+    for trial in runs:  # the resolved settings, as logged; the swept count is named once
+        trial.params["ensemble.particles"] = trial.tags[f"{TAG_OVERRIDE}ensemble.particles"]
     summary = report.summarize(runs, "box_drops", mode="min", references=[])
     figure = report_mbrl.penalty_figure(summary)
     lines = {container.get_label(): container.lines[0] for container in figure.axes[0].containers}
@@ -334,6 +336,23 @@ def test_noisy_fetch_drop_rates_are_drawn_against_the_aleatoric_penalty(tmp_path
     assert lines["noisy_fetch_pick_place ensemble.particles=4"].get_xdata().tolist() == [0.0, 0.5]
     assert report_mbrl.penalty_figure(report.summarize(runs[:1], "box_drops", references=[])) is None
     assert tmp_path / "penalty.png" in report.write_files(summary, tmp_path)
+
+
+def test_the_penalty_figure_names_a_particle_count_that_the_sweep_fixed_in_its_base():
+    """A sweep that sets the count in its base (razer_noisy_fetch_particles.yaml) has no swept setting that says
+    it, yet its drop rates depend on it; the logged settings do."""
+    from orchestrator import report_mbrl
+    from orchestrator.tracking import TAG_OVERRIDE, TAG_VARIANT, TrialRun
+
+    def run(weight: float, drops: float):
+        tags = {TAG_VARIANT: f"w{weight}", f"{TAG_OVERRIDE}ensemble.aleatoric_weight": json.dumps(weight)}
+        params = {"method": "mpc", "task": "noisy_fetch_pick_place", "seed": "0", "episodes": "20",
+                  "ensemble.particles": "16"}  # fmt: skip
+        return TrialRun(f"{weight}", "key", FINISHED, "name", params, tags, {"mean_box_drops": drops})
+
+    summary = report.summarize([run(0.0, 0.25), run(0.5, 0.3)], "box_drops", mode="min", references=[])
+    labels = [container.get_label() for container in report_mbrl.penalty_figure(summary).axes[0].containers]
+    assert labels == ["noisy_fetch_pick_place ensemble.particles=16"]
 
 
 def test_a_paired_success_comparison_counts_only_the_seeds_where_the_variants_disagree():
