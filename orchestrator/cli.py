@@ -72,7 +72,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="resume even if finished trials ran another mujoco or gymnasium-robotics version",
     )
     run.add_argument("--quiet", action="store_true", help="no progress display")
-    run.add_argument("--dry-run", action="store_true", help="print the trials and the plan, start nothing")
+    run.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the trials and the plan, start no trial (the time estimate may run a few planning steps of "
+        "each configuration without past runs here; --no-estimate skips it)",
+    )
     _add_plan_options(run, tracking=False)
 
     validate = commands.add_parser(
@@ -222,6 +227,9 @@ def _print_plan(loaded, args) -> None:
         print(f"  {trial.key}  seed {trial.config.seed}  {swept}{done}")
     if args.no_estimate:
         return
+    # Calibrating a configuration with no past runs can take minutes on a large planner: say so before it starts.
+    print("time estimate: from past runs, or a few planning steps of each new configuration here "
+          "(--no-estimate skips it) ...", flush=True)  # fmt: skip
     for line in plan.describe(loaded, plan.plan_sweep(loaded, tracker), args.cores):
         print(line)
 

@@ -175,6 +175,10 @@ def test_validate_lists_trials(tmp_path):
     result = cli("validate", str(sweep), cwd=tmp_path)
     assert result.returncode == 0
     assert "valid, 4 trial(s)" in result.stdout
+    # The estimate may calibrate for minutes: the output says so before it starts, and how to skip it.
+    lines = result.stdout.splitlines()
+    notice = next(i for i, line in enumerate(lines) if "(--no-estimate skips it)" in line)
+    assert notice < next(i for i, line in enumerate(lines) if line.startswith("plan: "))
 
 
 @pytest.mark.parametrize("sweep", sorted(str(p.relative_to(ROOT)) for p in (ROOT / "sweeps").rglob("*.yaml")))
