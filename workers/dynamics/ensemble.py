@@ -369,7 +369,7 @@ class DynamicsEnsemble:
     # ------------------------------------------------------------ state
     def export_state(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Weights, normaliser and Adam state as (numpy arrays, JSON-able metadata); no pickle anywhere."""
-        arrays = {f"net.{name}": t.detach().cpu().numpy().copy() for name, t in self.net.state_dict().items()}
+        arrays = self._net_arrays()
         optimizer = self.optimizer.state_dict()
         steps: dict[str, float] = {}
         for index, state in optimizer["state"].items():
@@ -378,16 +378,7 @@ class DynamicsEnsemble:
                     steps[str(index)] = float(value)
                 else:
                     arrays[f"adam.{index}.{key}"] = value.detach().cpu().numpy().copy()
-        meta = {
-            "format": CHECKPOINT_FORMAT,
-            "obs_dim": self.obs_dim,
-            "action_dim": self.action_dim,
-            "config": self.config.model_dump(),
-            "seed": self.seed,
-            "weights_version": self.weights_version,
-            "adam_steps": steps,
-        }
-        return arrays, meta
+        return arrays, self._meta(steps)
 
     def import_state(self, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
         """Load what :meth:`export_state` produced (shapes and config must match this ensemble)."""
@@ -423,17 +414,23 @@ class DynamicsEnsemble:
 
         :meth:`from_state` rebuilds a model from it (with a fresh optimiser).
         """
-        arrays = {f"net.{name}": t.detach().cpu().numpy().copy() for name, t in self.net.state_dict().items()}
-        meta = {
+        return self._net_arrays(), self._meta({})
+
+    def _net_arrays(self) -> dict[str, np.ndarray]:
+        """The network's parameters and buffers (the input normaliser among them) as numpy arrays."""
+        return {f"net.{name}": t.detach().cpu().numpy().copy() for name, t in self.net.state_dict().items()}
+
+    def _meta(self, adam_steps: dict[str, float]) -> dict[str, Any]:
+        """The JSON-able part of a checkpoint; ``adam_steps`` is empty for weights without optimiser state."""
+        return {
             "format": CHECKPOINT_FORMAT,
             "obs_dim": self.obs_dim,
             "action_dim": self.action_dim,
             "config": self.config.model_dump(),
             "seed": self.seed,
             "weights_version": self.weights_version,
-            "adam_steps": {},
+            "adam_steps": adam_steps,
         }
-        return arrays, meta
 
     def to_bytes(self, weights_only: bool = False) -> bytes:
         """The bytes of an ``.npz`` checkpoint (see :meth:`save`)."""
