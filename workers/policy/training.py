@@ -3,13 +3,14 @@
 MSE to the expert's actions plus l1 (1e-6) and l2 (1e-5) penalties on the
 weight matrices, Adam (lr 5e-4), batches of 1024 drawn with replacement,
 1000 gradient steps per training. By default the network and the optimiser
-are never reset: every training continues from the last one. The input
+are never reset: every training continues from the last one, as Alg. 3
+initialises theta once, before its loop. The input
 standardisation follows the current dataset; when it moves, the first layer
 is rescaled and shifted with it, so the carried-over network computes the
-same function of the raw observation as before (``keep_function``). The thesis does not say
-whether the policy is re-initialised between APEX iterations;
+same function of the raw observation as before (``keep_function``).
 ``reinitialize: true`` starts every training from a fresh network and
-optimiser instead (README, APEX, measures both).
+optimiser instead, a departure from Alg. 3 that measured better on
+HalfCheetah (README, APEX, measures both).
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ class PolicySettings(BaseModel):
     inputs standardised differently from those they were fitted on (the reading before)."""
     reinitialize: bool = False
     """Start every training from a freshly initialised network and optimiser (seeded by the trainer's seed and
-    the training's index) instead of continuing from the last one; the thesis leaves this open."""
+    the training's index) instead of continuing from the last one. Alg. 3 initialises the weights once, before its
+    loop, and every training updates them: False is that reading."""
 
 
 class TrainReport(NamedTuple):
