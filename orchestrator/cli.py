@@ -358,9 +358,9 @@ def cmd_status(args) -> int:
         print(f"sweep {name!r} has not run in {uri}")
         return 1
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker)}")
+    metric = _recorded_metric(_recorded_sweep(tracker, parent.run_id))
     for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
-        figure = child.metrics.get("mean_return")
-        shown = "" if figure is None else f"return {figure:.1f}"
+        shown = _trial_metric_text(tracker, child, metric[0] if metric else None)
         print(
             f"  {child.trial_key}  {child.status:9s} {child.name:44s} rounds {child.rounds:>4d}  "
             f"attempts {child.attempts}  {shown}"
@@ -374,6 +374,25 @@ def cmd_status(args) -> int:
             print(f"      ran on {machine.get('cpu_model', '?')}, {machine.get('cpus', '?')} CPUs, "
                   f"host {machine.get('host', '?')}")  # fmt: skip
     return 0
+
+
+def _trial_metric_text(tracker, child, metric: str | None) -> str:
+    """A trial's figure of the sweep's metric: its summary once it finished; while it runs, the mean of the rounds
+    logged so far, so that a long trial shows where it is heading (said as such: an unfinished figure)."""
+    if metric is None:
+        figure = child.metrics.get("mean_return")
+        return "" if figure is None else f"return {figure:.1f}"
+    from workers.methods import METHODS
+
+    program = METHODS.get(child.params.get("method", child.tags.get("method", "mpc")))
+    summary_key = (program.metrics if program else {}).get(metric, metric)
+    if summary_key in child.metrics and child.status != "RUNNING":
+        return f"{metric} {child.metrics[summary_key]:.4g}"
+    by_round = dict(tracker.metric_history(child.run_id, metric))  # a round logged twice counts once
+    if not by_round:
+        return ""
+    values = list(by_round.values())
+    return f"{metric} {sum(values) / len(values):.3g} so far (mean of the {len(values)} logged)"
 
 
 def _recorded_sweep(tracker, run_id: str) -> dict:

@@ -444,6 +444,22 @@ def test_a_variants_name_stands_for_its_overrides_and_a_grid_over_it_stays_in_th
     assert sorted(row["planner.noise_release"] for row in rows) == ["1.1", "1.1", "2.1", "2.1"]
 
 
+def test_status_shows_each_trials_sweep_metric_and_a_running_trials_figure_so_far(tmp_path):
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    text = "name: drops\ntask: noisy_fetch_pick_place\nmetric: {name: box_drops, mode: min}\n"
+    parent = tracker.start_sweep("drops", "drops", "hash", text, {}, "dev", planned_trials=2)
+    params = {"method": "mpc", "task": "noisy_fetch_pick_place", "seed": 0, "episodes": 4}
+    done = tracker.start_trial(parent, "done", "done", params, {"method": "mpc"})
+    tracker.end_trial(done, FINISHED, {"mean_box_drops": 0.25, "mean_return": -12.0})
+    running = tracker.start_trial(parent, "running", "running", params, {"method": "mpc"})
+    for episode, drops in enumerate([1.0, 0.0, 1.0]):  # three of four episodes so far
+        tracker.log_round(running, episode, episode, {"box_drops": drops}, {}, 0)
+    tracker.log_round(running, 2, 2, {"box_drops": 1.0}, {}, 0)  # a round logged again after a restart
+    lines = {line.split()[0]: line for line in cli("status", "drops", cwd=tmp_path).stdout.splitlines()[1:]}
+    assert lines["done"].endswith("box_drops 0.25")  # the summary, not the return
+    assert lines["running"].endswith("box_drops 0.667 so far (mean of the 3 logged)")
+
+
 def test_status_tells_a_running_sweeps_time_to_go_from_its_recent_pace(tmp_path):
     tracker = Tracker(default_tracking_uri(tmp_path))
     parent = tracker.start_sweep("paced", "paced", "hash", "name: paced\n", {}, "dev", planned_trials=10)
