@@ -439,7 +439,16 @@ def cmd_report(args) -> int:
     from orchestrator.scheduler import report_histories
     from workers.methods import METHODS
 
-    runs = [r for r in tracker.trial_runs(parent.run_id) if r.status == FINISHED]
+    children = tracker.trial_runs(parent.run_id)
+    runs = [r for r in children if r.status == FINISHED]
+    if not runs:
+        running = sum(r.status == "RUNNING" for r in children)
+        print(
+            f"sweep {name!r} has no finished trial yet ({running} running, {len(children) - running} stopped or "
+            f"failed); `icemlab status {name}` shows each trial's figure so far",
+            file=sys.stderr,
+        )
+        return 1
     planned = None
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references

@@ -460,6 +460,16 @@ def test_status_shows_each_trials_sweep_metric_and_a_running_trials_figure_so_fa
     assert lines["running"].endswith("box_drops 0.667 so far (mean of the 3 logged)")
 
 
+def test_report_of_a_sweep_without_a_finished_trial_points_to_status(tmp_path):
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("young", "young", "hash", "name: young\n", {}, "dev", planned_trials=2)
+    tracker.start_trial(parent, "running", "running", {"method": "mpc", "seed": 0}, {"method": "mpc"})
+    result = cli("report", "young", cwd=tmp_path)
+    assert result.returncode == 1 and "no finished trial yet (1 running" in result.stderr
+    assert "icemlab status young" in result.stderr
+    assert not (tmp_path / "reports").exists()  # no empty table written
+
+
 def test_status_tells_a_running_sweeps_time_to_go_from_its_recent_pace(tmp_path):
     tracker = Tracker(default_tracking_uri(tmp_path))
     parent = tracker.start_sweep("paced", "paced", "hash", "name: paced\n", {}, "dev", planned_trials=10)
