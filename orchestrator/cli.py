@@ -125,7 +125,12 @@ def build_parser() -> argparse.ArgumentParser:
         "recorded are compared with this installation's. Exit 0 when identical, 1 when not.",
     )
     reproduce.add_argument("run_id", help="the trial's MLflow run id (icemlab status SWEEP --provenance lists them)")
-    reproduce.add_argument("--threads", type=int, default=None, help="CPUs for the trial (default: all)")
+    reproduce.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPUs per unit of work (default: as the trial ran, which torch-trained methods need to repeat)",
+    )
     _add_tracking(reproduce)
 
     ui = commands.add_parser(
@@ -475,11 +480,10 @@ def cmd_report(args) -> int:
 def cmd_reproduce(args) -> int:
     from orchestrator.reproduce import ReproduceError, reproduce
     from orchestrator.tracking import Tracker
-    from workers.rollout import default_threads
 
     tracker = Tracker(args.tracking_uri)
     try:
-        outcome = reproduce(tracker, args.run_id, args.threads or default_threads())
+        outcome = reproduce(tracker, args.run_id, args.threads)
     except ReproduceError as error:
         print(f"icemlab: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -488,6 +492,11 @@ def cmd_reproduce(args) -> int:
         print(f"{key}: recorded {recorded!r}, now {now!r}: {same}")
     for package, (recorded, now) in outcome.version_changes.items():
         print(f"note: the run used {package} {recorded}, this is {now}")
+    if outcome.recorded_threads not in (None, outcome.threads):
+        print(
+            f"note: the run used {outcome.recorded_threads} thread(s) per worker, this {outcome.threads}; "
+            "torch-trained figures differ with the thread count"
+        )
     print("identical" if outcome.identical else "NOT identical")
     return 0 if outcome.identical else 1
 

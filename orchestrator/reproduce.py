@@ -6,7 +6,9 @@ are compared with the recorded ones. Ground-truth MPC is deterministic per
 seed (native rollouts reproduce MuJoCo bit for bit, whatever the thread
 count), so with the same versions the figures are identical; the versions
 recorded with the run are compared too, since another MuJoCo may step
-differently.
+differently. Methods that train torch networks repeat only with the thread
+count the trial ran with (torch sums in another order with other threads), so
+that count is the default.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from orchestrator import provenance
 from orchestrator.sweep import TrialConfig
 from orchestrator.tracking import FINISHED, Tracker
 from workers.methods import METHODS, run_locally
+from workers.rollout import default_threads
 
 
 class ReproduceError(ValueError):
@@ -31,13 +34,18 @@ class Reproduction(NamedTuple):
     """(summary metric, recorded, now)."""
     version_changes: dict[str, tuple[str, str]]
     """package -> (recorded, now) where they differ."""
+    threads: int
+    """CPUs per unit of work of this run."""
+    recorded_threads: int | None
+    """CPUs per unit of work the trial ran with (None: not recorded)."""
 
     @property
     def identical(self) -> bool:
         return all(recorded == now for _, recorded, now in self.figures)
 
 
-def reproduce(tracker: Tracker, run_id: str, cpus: int = 1) -> Reproduction:
+def reproduce(tracker: Tracker, run_id: str, cpus: int | None = None) -> Reproduction:
+    """Run the trial of ``run_id`` again with ``cpus`` per unit of work (default: as it ran, else all)."""
     run = tracker.trial_run(run_id)
     if run is None:
         raise ReproduceError(f"no trial run {run_id!r} in {tracker.uri}; `icemlab status SWEEP` lists run ids")
@@ -52,6 +60,8 @@ def reproduce(tracker: Tracker, run_id: str, cpus: int = 1) -> Reproduction:
         raise ReproduceError(f"run {run_id} ran method {recorded['method']!r}, which this icemlab does not have")
     config = TrialConfig.from_canonical(recorded)
     program = METHODS[config.method]
+    if cpus is None:
+        cpus = run.threads_per_worker or default_threads()
     reports = run_locally(program, config.spec(), unit_cpus=cpus)
     summary = reports[-1].summary
     figures = [
@@ -65,4 +75,4 @@ def reproduce(tracker: Tracker, run_id: str, cpus: int = 1) -> Reproduction:
         for name, now in provenance.package_versions().items()
         if recorded_versions.get(name, now) != now
     }
-    return Reproduction(run_id, figures, changes)
+    return Reproduction(run_id, figures, changes, cpus, run.threads_per_worker)

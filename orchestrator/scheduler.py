@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -32,7 +33,18 @@ from orchestrator.failures import BAD_CHECKPOINT, CODE_ERROR, LOST_PROCESS, Fail
 from orchestrator.interrupt import InterruptRequest
 from orchestrator.placement import TrialGroup, bundle_layout, groups_that_fit
 from orchestrator.sweep import LoadedSweep, Trial
-from orchestrator.tracking import CORE_SECONDS_PER_WORK, FAILED, FINISHED, KILLED, ROUND_SECONDS, Tracker, TrialRun
+from orchestrator.tracking import (
+    CORE_SECONDS_PER_WORK,
+    FAILED,
+    FINISHED,
+    KILLED,
+    PARAM_THREADS,
+    ROUND_SECONDS,
+    TAG_THREADS,
+    TAG_THREADS_CHANGED,
+    Tracker,
+    TrialRun,
+)
 from workers.methods import METHODS
 
 POLL_SECONDS = 0.5
@@ -57,6 +69,10 @@ class ResourceError(ValueError):
 
 class PhysicsChangedError(ValueError):
     """A resume whose finished trials ran with other physics packages than this process."""
+
+
+def _print_notice(message: str) -> None:
+    print(f"icemlab: note: {message}", file=sys.stderr)
 
 
 def trial_label(trial: Trial) -> str:
@@ -88,6 +104,8 @@ class TrialState:
     logged_rounds: set[int] = field(default_factory=set)
     rounds_done: int = 0
     not_before: float = 0.0
+    threads: int | None = None
+    """CPUs per unit of work of the trial's latest attempt (from its run on a resume)."""
 
     def backoff(self) -> float:
         """Seconds to wait before the attempt after a lost process: growing while no round completes."""
@@ -205,6 +223,7 @@ class SweepScheduler:
         max_concurrent: int | None = None,
         display: Callable[[SweepState], None] | None = None,
         allow_physics_change: bool = False,
+        notice: Callable[[str], None] | None = None,
     ):
         self.loaded = loaded
         self.sweep = loaded.sweep
@@ -218,6 +237,7 @@ class SweepScheduler:
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
         self._active: list[Attempt] = []
         self.allow_physics_change = allow_physics_change
+        self.notice = notice or _print_notice
         self._provenance = provenance.current()
 
     # -------------------------------------------------------------- plan
@@ -251,15 +271,19 @@ class SweepScheduler:
         """CPUs one trial's group holds when a unit of work gets ``unit`` CPUs."""
         return sum(bundle["CPU"] for bundle in self.group_bundles(unit))
 
-    def layout(self, nodes: float | Sequence[float], pending: int) -> tuple[int, int]:
+    def layout(
+        self, nodes: float | Sequence[float], pending: int, threads: int | None = None
+    ) -> tuple[int, int]:
         """(CPUs per unit of work, concurrent trials) on nodes with these CPUs (one number: one node).
 
+        ``threads`` fixes the CPUs per unit of work in place of the sweep's ``resources.threads_per_worker``.
         Raises ResourceError when not even one trial can be placed: more CPUs than the cluster has, or a
         bundle (one actor's CPUs, which live on one node) larger than every node.
         """
         per_node = sorted([float(nodes)] if isinstance(nodes, (int, float)) else map(float, nodes), reverse=True)
         cpus, largest = sum(per_node), per_node[0] if per_node else 0.0
-        threads = self.sweep.resources.threads_per_worker
+        if threads is None:
+            threads = self.sweep.resources.threads_per_worker
         if threads is None:
             # Enough trials to use every CPU once, the rest of the CPUs as threads.
             concurrent = max(1, min(pending, int(cpus // self.group_cpus(1))))
@@ -319,9 +343,10 @@ class SweepScheduler:
                     state.attempts = previous.attempts
                     state.logged_rounds = self.tracker.logged_rounds(previous.run_id)
                     state.rounds_done = len(state.logged_rounds)
+                    state.threads = previous.threads_per_worker
                 states.append(state)
             skipped = len(self.loaded.trials) - len(states)
-            threads, concurrent = self.layout(cpus, len(states))
+            threads, concurrent = self._layout_to_continue(cpus, states)
             with InterruptRequest() as interrupt:
                 return self._drive(parent_id, states, skipped, threads, concurrent, interrupt)
         except KeyboardInterrupt:
@@ -397,6 +422,36 @@ class SweepScheduler:
         table = self.finish_sweep(parent_id, done + skipped, failed)
         return SweepOutcome(parent_id, done, failed, skipped, table)
 
+    def _layout_to_continue(self, cpus: float | Sequence[float], states: list[TrialState]) -> tuple[int, int]:
+        """The layout, keeping the thread count the started trials ran with when the sweep does not fix one.
+
+        Torch sums in another order with another thread count, so a network trained on after a resume with
+        other threads rounds differently from an uninterrupted run (measured on HalfCheetah APEX: one thread
+        against two differs from the first training on); with the count it began with, a resumed trial
+        repeats the uninterrupted one bit for bit.
+        """
+        began = {s.threads for s in states if s.rounds_done} - {None}
+        if self.sweep.resources.threads_per_worker is None and len(began) == 1:
+            try:
+                return self.layout(cpus, len(states), threads=began.pop())
+            except ResourceError:
+                pass  # the cluster is smaller than the one they began on: lay out anew
+        return self.layout(cpus, len(states))
+
+    def _record_threads(self, state: TrialState) -> None:
+        """Tag the attempt's thread count, and say so where a started trial continues with another one."""
+        tags = {TAG_THREADS: str(self._threads)}
+        if state.rounds_done and state.threads is not None and state.threads != self._threads:
+            tags[TAG_THREADS_CHANGED] = f"{state.threads} -> {self._threads}"
+            self.notice(
+                f"{trial_label(state.trial)} ran with {state.threads} thread(s) per worker and continues with "
+                f"{self._threads}: torch sums in another order with another thread count, so its figures may "
+                "differ from an uninterrupted run's; `resources: {threads_per_worker: "
+                f"{state.threads}}}` continues it as it began"
+            )
+        state.threads = self._threads
+        self.tracker.set_tags(state.run_id, tags)
+
     def _refuse_mixed_physics(self, runs: list[TrialRun]) -> None:
         """Stop a resume whose finished trials ran another MuJoCo or gymnasium-robotics than this one."""
         for run in runs:
@@ -420,7 +475,7 @@ class SweepScheduler:
             tags = {"task": config.task, "method": config.method, "seed": str(config.seed)}
             tags |= METHODS[config.method].labels(spec)
             params = config.flat() | {
-                "resources.threads_per_worker": self._threads,
+                PARAM_THREADS: self._threads,
                 "resources.simulation_workers": self.sweep.resources.simulation_workers,
             }
             if trial.variant:
@@ -438,6 +493,7 @@ class SweepScheduler:
         else:
             self.tracker.reopen_trial(state.run_id, state.attempts)
         self.tracker.record_provenance(state.run_id, self._provenance)  # the code that runs (or continues) it
+        self._record_threads(state)
         group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())
 

@@ -66,6 +66,12 @@ TAG_COMMIT = "icemlab.commit"
 TAG_DIRTY = "icemlab.dirty"
 TAG_MACHINE = "icemlab.machine."
 """Prefix of the tags that describe the worker a trial ran on (cpu_model, cpus, host)."""
+TAG_THREADS = "icemlab.threads_per_worker"
+"""The CPUs per unit of work (torch's thread count) of the trial's latest attempt."""
+TAG_THREADS_CHANGED = "icemlab.threads_changed"
+"""Set when an attempt continued a trial with another thread count than the one before ("2 -> 1")."""
+PARAM_THREADS = "resources.threads_per_worker"
+"""The run parameter with the thread count of a trial's first attempt."""
 TAG_PARENT = "mlflow.parentRunId"
 TAG_RUN_NAME = "mlflow.runName"
 ROUND_MARKER = "icemlab.round"
@@ -156,6 +162,12 @@ class TrialRun(NamedTuple):
     def versions(self) -> dict[str, str]:
         """package -> version the trial ran with."""
         return {k.removeprefix(TAG_VERSION): v for k, v in self.tags.items() if k.startswith(TAG_VERSION)}
+
+    @property
+    def threads_per_worker(self) -> int | None:
+        """The CPUs per unit of work the trial last ran with (None: not recorded)."""
+        value = self.tags.get(TAG_THREADS, self.params.get(PARAM_THREADS))
+        return int(value) if value is not None and value.isdigit() else None
 
     @property
     def machine(self) -> dict[str, str]:

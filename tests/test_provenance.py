@@ -8,8 +8,10 @@ import pytest
 from helpers import cli, sweep_runs, write_sweep
 
 from orchestrator import provenance
+from orchestrator.reproduce import reproduce
 from orchestrator.sweep import load_sweep
-from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+from orchestrator.tracking import FINISHED, PARAM_THREADS, Tracker, default_tracking_uri
+from workers.methods import METHODS, run_locally
 
 
 @pytest.mark.slow  # several sweeps through the CLI
@@ -61,6 +63,24 @@ def test_reproduce_refuses_unknown_and_unfinished_runs(tmp_path):
     unfinished = cli("reproduce", running, cwd=tmp_path)
     assert unfinished.returncode == 2 and "is RUNNING: only a finished trial can be reproduced" in unfinished.stderr
     assert tracker.trial_run(running).status == "RUNNING"  # nothing changed
+
+
+def test_reproduce_runs_with_the_thread_count_the_trial_ran_with(tmp_path):
+    """Torch-trained figures depend on the thread count, so a reproduction uses the recorded one."""
+    sweep = write_sweep(tmp_path, "toy_threads", method="toy", base={"rounds": 2, "steps": 5}, algorithm=None)
+    (trial,) = load_sweep(sweep).trials
+    (recorded,) = [r.summary for r in run_locally(METHODS["toy"], trial.config.spec()) if r.summary]
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("toy_threads", "toy_threads", "hash", sweep.read_text(), {}, "dev")
+    artifacts = {"trial.json": json.dumps(trial.config.canonical())}
+    run_id = tracker.start_trial(parent, trial.key, "toy", {PARAM_THREADS: 3}, {}, artifacts)
+    tracker.end_trial(run_id, FINISHED, recorded)
+
+    again = reproduce(tracker, run_id)
+    assert (again.threads, again.recorded_threads) == (3, 3) and again.identical
+    assert reproduce(tracker, run_id, cpus=1).threads == 1
+    told = cli("reproduce", run_id, "--threads", "1", cwd=tmp_path)
+    assert "note: the run used 3 thread(s) per worker, this 1" in told.stdout, told.stdout + told.stderr
 
 
 @pytest.mark.slow  # several sweeps through the CLI

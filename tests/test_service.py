@@ -31,7 +31,17 @@ from helpers import cli, kill_group, start_cli, sweep_runs, wait_for, write_swee
 from orchestrator.placement import TrialGroup, bundle_layout, groups_that_fit
 from orchestrator.scheduler import ResourceError, SweepScheduler
 from orchestrator.sweep import load_sweep
-from orchestrator.tracking import FAILED, FINISHED, KILLED, RUNNING, Tracker, default_tracking_uri
+from orchestrator.tracking import (
+    FAILED,
+    FINISHED,
+    KILLED,
+    PARAM_THREADS,
+    RUNNING,
+    TAG_THREADS,
+    TAG_THREADS_CHANGED,
+    Tracker,
+    default_tracking_uri,
+)
 from workers.methods import METHODS, RoleSpec, run_locally
 
 
@@ -170,6 +180,40 @@ class RunsCode:
 
     def __reduce__(self):
         return os.system, (f"touch {self.marker}",)
+
+
+@pytest.mark.parametrize("resumed_with", [None, 1], ids=["threads-open", "threads-fixed"])
+def test_a_resumed_trial_continues_with_the_thread_count_it_began_with(tmp_path, local_ray, resumed_with):
+    """Torch rounds differently with other threads: a resume that leaves the count open keeps the trial's
+    own; one that fixes another continues with it and says so, on stderr and in the run's tags."""
+    cleared = tmp_path / "cleared"
+
+    def sweep(threads):
+        base = {"rounds": 3, "steps": 10, "fail_on_round": 2, "fail_until_file": str(cleared)}
+        resources = {} if threads is None else {"resources": {"threads_per_worker": threads}}
+        return write_sweep(tmp_path, "threads", method="toy", base=base, algorithm=None, retries=0, **resources)
+
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    assert SweepScheduler(load_sweep(sweep(2)), tracker).run().failed == 1  # rounds 0-1 with two threads
+    _, (child,) = sweep_runs(tracker.uri, "threads")
+    assert child.tags[TAG_THREADS] == "2" and child.threads_per_worker == 2
+
+    cleared.touch()
+    notices = []
+    loaded = load_sweep(sweep(resumed_with))
+    assert SweepScheduler(loaded, tracker).layout(2, 1) == (1, 1)  # what the open count would be on 2 CPUs
+    outcome = SweepScheduler(loaded, tracker, resume=True, notice=notices.append).run()
+    assert (outcome.finished, outcome.failed) == (1, 0)
+    _, (child,) = sweep_runs(tracker.uri, "threads")
+    assert child.status == FINISHED and child.params[PARAM_THREADS] == "2"  # the first attempt's
+    if resumed_with is None:
+        assert child.tags[TAG_THREADS] == "2" and TAG_THREADS_CHANGED not in child.tags and notices == []
+    else:
+        assert child.tags[TAG_THREADS] == "1" and child.tags[TAG_THREADS_CHANGED] == "2 -> 1"
+        (notice,) = notices
+        assert notice.startswith("point_reach/s0 ran with 2 thread(s) per worker and continues with 1")
+        assert "may differ from an uninterrupted run" in notice
+        assert "`resources: {threads_per_worker: 2}` continues it as it began" in notice
 
 
 def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_path, local_ray):
