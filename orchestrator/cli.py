@@ -278,6 +278,7 @@ def cmd_run(args) -> int:
         max_concurrent=args.max_concurrent,
         display=display,
         allow_physics_change=args.allow_physics_change,
+        notice=display.note if display else None,
     )
     try:
         outcome = scheduler.run()

@@ -61,6 +61,13 @@ class ProgressDisplay:
             self._last_counts, self._last_print = counts, now
             print(line, file=self.stream, flush=True)
 
+    def note(self, message: str) -> None:
+        """Print a note on a line of its own; a terminal's status line is redrawn at the next update."""
+        if self.interactive:
+            self.stream.write("\r\x1b[2K")
+        self.stream.write(f"icemlab: note: {message}\n")
+        self.stream.flush()
+
     def close(self) -> None:
         if self.interactive:
             self.stream.write("\n")

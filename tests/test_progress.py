@@ -1,0 +1,50 @@
+"""The sweep's progress line on a terminal, and notes printed while it is shown."""
+
+from __future__ import annotations
+
+import io
+
+from orchestrator.progress import ProgressDisplay, describe
+from orchestrator.scheduler import SweepState
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+STATE = SweepState(
+    name="fetch",
+    total=3,
+    done=1,
+    failed=0,
+    running=[("noisy_fetch/pets/s0", {"phase": "running", "round": 6, "rounds": 20, "text": "step 12/50"})],
+    elapsed=3725.0,
+    eta=600.0,
+)
+
+
+def test_the_line_shows_counts_each_running_trials_place_and_the_time_to_go():
+    assert describe(STATE) == (
+        "fetch: 1/3 done, 1 running, 0 failed | noisy_fetch/pets/s0 round 7/20 step 12/50 | "
+        "elapsed 1:02:05, ETA 10:00"
+    )
+
+
+def test_a_note_on_a_terminal_clears_the_status_line_and_keeps_a_line_of_its_own():
+    terminal = Terminal()
+    display = ProgressDisplay(terminal)
+    display(STATE)
+    display.note("trial x continues with 1 thread")
+    display(STATE)
+    written = terminal.getvalue()
+    status = "\r\x1b[2K" + describe(STATE)
+    assert written == status + "\r\x1b[2K" + "icemlab: note: trial x continues with 1 thread\n" + status
+
+
+def test_a_note_in_a_log_is_a_plain_line():
+    log = io.StringIO()
+    display = ProgressDisplay(log)
+    display(STATE)
+    display.note("resumed")
+    assert log.getvalue() == describe(STATE) + "\nicemlab: note: resumed\n"
