@@ -319,6 +319,37 @@ def test_reevaluated_elites_are_simulated_again():
     assert planner.config.trajectories_per_step() == 40 + 35 + 28
 
 
+class LuckyFirstDraw(Recorder):
+    """A random cost: the first iteration's best sequence drew far below its real cost, which its re-evaluation
+    in the next iteration (a kept elite) shows."""
+
+    def __call__(self, actions):
+        costs = super().__call__(actions)
+        if len(self.batches) == 1:
+            costs[np.argmin(costs)] -= 1000.0
+        return costs
+
+
+@pytest.mark.parametrize("best_from", ["step", "last_iteration"])
+def test_the_executed_best_comes_from_the_step_or_the_last_iterations_elites(best_from):
+    """Section 3.2.3 executes the best sequence ever evaluated at the step; Alg. 5 (line 11) the best of the final
+    elite-set, which with re-evaluated elites is ranked on current draws only."""
+    cost = LuckyFirstDraw()
+    planner = make("icem", shift_elites=False, reevaluate_elites=True, best_from=best_from)
+    result = planner.plan(cost)
+    lucky = cost.batches[0][np.argmin(quadratic_cost(cost.batches[0]))]
+    last = cost.batches[-1][np.argmin(quadratic_cost(cost.batches[-1]))]
+    assert any(np.array_equal(lucky, s) for s in cost.batches[1])  # re-evaluated, with its real cost
+    assert not np.array_equal(lucky, last)
+    if best_from == "step":
+        np.testing.assert_array_equal(result.plan, lucky)
+        assert result.best_cost == quadratic_cost(lucky[None])[0] - 1000.0
+    else:
+        np.testing.assert_array_equal(result.plan, last)
+        assert result.best_cost == quadratic_cost(last[None])[0]
+    np.testing.assert_array_equal(result.action, result.plan[0])
+
+
 @pytest.mark.parametrize("algorithm", ["icem", "cem_mpc", "cem"])
 def test_refit_moves_mean_and_std_to_the_elites_with_momentum(algorithm, monkeypatch):
     """mu <- alpha mu + (1 - alpha) mean(elites), sigma likewise (section 3.1.1; alpha 0 for plain CEM)."""

@@ -139,6 +139,12 @@ class PlannerConfig(BaseModel):
     """Last step of the shifted mean: repeat the previous last step (eq. 33) or zero (CEM_PETS)."""
     best_action: bool | None = None
     """Execute the first action of the best sequence evaluated at this step instead of the mean's (section 3.2.3)."""
+    best_from: Literal["step", "last_iteration"] = "step"
+    """With best_action, which best sequence is executed: "step" the best evaluated in any CEM-iteration of this
+    step (section 3.2.3, "the best sequence ever evaluated"), "last_iteration" the best of the last iteration's
+    elite-set (Alg. 5, line 11). They differ when costs are random: with re-evaluated kept elites,
+    "last_iteration" ranks current draws only, where "step" may execute a sequence on a draw that its
+    re-evaluation has since replaced."""
     add_mean: bool | None = None
     """Evaluate the mean sequence in the last CEM-iteration (B.4.3)."""
     reevaluate_elites: bool = False

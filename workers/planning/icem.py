@@ -252,7 +252,8 @@ class CEMPlanner:
             costs = np.where(np.isfinite(costs), costs, np.inf)
             order = np.argsort(costs, kind="stable")[: config.elites]
             elites, elite_batch = samples[order], batch.take(order)
-            if costs[order[0]] < best_cost:
+            final_elites = i == last and config.best_from == "last_iteration"
+            if final_elites or costs[order[0]] < best_cost:
                 best_cost, best_sequence = float(costs[order[0]]), elites[0].copy()
                 best_components = {k: float(v[0]) for k, v in elite_batch.components.items()}
 
