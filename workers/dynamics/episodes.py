@@ -7,7 +7,9 @@ from the current observation, and the first action of the best elite (Table
 15) or of the mean (section 5.3.1) is executed in the real environment. The
 loop records the trajectory (the training data of the next iteration), the
 task's episode metrics and the means of the cost terms c, c_A, c_E, c_S of the
-executed plans (the best sequence's terms, PlanResult.components).
+best sequence of each step (PlanResult.components): the executed plan's with
+``best_action``; with the mean executed (``best_action: false``) the refitted
+mean itself is never evaluated, so they describe the best sample beside it.
 
 :func:`run_random_episode` is the colored-noise exploration the MBRL loop
 starts from.
