@@ -88,6 +88,9 @@ def test_table_9_stands_beside_the_full_apex_only():
     assert find(references, "halfcheetah_running", "apex", budget_100, "policy_return").value == 5596
     assert find(references, "halfcheetah_running", "apex", full | {"warm_start": "False"}, "policy_return") is None
     assert find(references, "halfcheetah_running", "apex", full, "expert_return").value == 5556
+    # The sweep's headline, the final policy over evaluation episodes, stands for Table 9's policy too.
+    assert load_sweep(sweep).sweep.metric.name == "evaluation_return"
+    assert find(references, "halfcheetah_running", "apex", full, "evaluation_return").value == 4847
 
 
 def fabricate(
