@@ -34,8 +34,9 @@ class Reference(BaseModel):
     """The method it is about."""
     match: dict[str, Any] = {}
     """Run params that must be equal (dotted as in MLflow, e.g. planner.budget); null matches an unset value."""
-    metric: str
-    """The metric, as sweeps name it (episode_return, success, seconds_per_step, ...)."""
+    metric: str | tuple[str, ...]
+    """The metric, as sweeps name it (episode_return, success, seconds_per_step, ...), or a list of the metrics
+    that each stand for this figure (APEX's policy_return and evaluation_return)."""
     value: float
     """The published value (a mean, or a success rate)."""
     spread: float | None = Field(None, ge=0)
@@ -48,7 +49,8 @@ class Reference(BaseModel):
     """Where in the paper (table, figure, section)."""
 
     def matches(self, task: str, method: str, params: Mapping[str, str], metric: str) -> bool:
-        if (self.task, self.method, self.metric) != (task, method, metric):
+        metrics = (self.metric,) if isinstance(self.metric, str) else self.metric
+        if (self.task, self.method) != (task, method) or metric not in metrics:
             return False
         return all(same_param(params.get(key), value) for key, value in self.match.items())
 
