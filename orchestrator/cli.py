@@ -442,7 +442,7 @@ def cmd_report(args) -> int:
         return 1
     # Imported only when there is something to report: the methods bring torch and every task.
     from orchestrator import report
-    from orchestrator.scheduler import report_histories
+    from orchestrator.scheduler import episode_histories, report_histories
     from workers.methods import METHODS
 
     children = tracker.trial_runs(parent.run_id)
@@ -468,10 +468,11 @@ def cmd_report(args) -> int:
         metric, mode = _recorded_metric(recorded) or (next(iter(METHODS[method].metrics)), "max")
         pairing = _recorded_pairing(recorded)
         references = load_references(THESIS)
-    summary = report.summarize(runs, metric, mode, references, planned, pairing)
+    program = METHODS.get(report.result_from_run(runs[0]).method)
+    episodes = episode_histories(tracker, runs, program, metric, pairing)
+    summary = report.summarize(runs, metric, mode, references, planned, pairing, episodes)
     print(report.format_table(summary))
     output = args.output or Path("reports") / name
-    program = METHODS[summary.groups[0].method] if summary.groups else None
     histories = report_histories(tracker, runs, program) if program else None
     written = report.write_files(summary, output, histories)
     print(f"\nwrote {', '.join(str(p) for p in written)}", file=sys.stderr)

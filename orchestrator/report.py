@@ -237,10 +237,15 @@ def summarize(
     references: list[Reference] = (),
     planned: set[str] | None = None,
     pairing: Pairing | None = None,
+    episodes: Histories | None = None,
 ) -> Summary:
     """Group finished trial runs by configuration, summarise the sweep's metric, test it against the references.
 
     ``pairing``: compare each variant with its baseline seed by seed (see :class:`Pairing`).
+
+    ``episodes``: run id -> {metric: [(episode, value), ...]}, the sweep's metric per episode, for a method whose
+    episodes start alike across configurations (``Program.paired_episodes``): where both sides have them, a
+    variant meets its baseline episode by episode.
 
     ``planned``: the trial keys of the sweep's current plan. A resumed sweep whose code resolves a configuration
     differently (a new key) runs it again under the same parent; where a configuration and seed has a planned
@@ -268,7 +273,8 @@ def summarize(
     groups.sort(key=lambda g: (g.task, _sort_labels(g.labels), g.variant or "", json.dumps(g.setting, sort_keys=True)))
     groups = _with_implied_settings(groups)
     if pairing is not None:
-        groups = [group._replace(paired=_paired(group, groups, pairing, summary_key)) for group in groups]
+        groups = [group._replace(paired=_paired(group, groups, pairing, summary_key, metric, episodes))
+                  for group in groups]  # fmt: skip
     finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean)]
     best, tied = None, ()
     if finite:
@@ -280,8 +286,10 @@ def summarize(
     return Summary(groups, metric, summary_key, mode, best, tied, pairing.baselines if pairing else ())
 
 
-def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: str) -> PairedComparison | None:
-    """``group`` against its baseline on their shared seeds; None for a baseline or where none matches."""
+def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: str, metric: str,
+            episodes: Histories | None) -> PairedComparison | None:  # fmt: skip
+    """``group`` against its baseline on their shared episodes where both logged them, else on their shared
+    seeds; None for a baseline or where none matches."""
     if group.variant in pairing.baselines:
         return None
 
@@ -294,11 +302,30 @@ def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: st
                 name, group.task, group.labels, point(group)
             ):
                 continue
-            mine, theirs = _per_seed(group, summary_key), _per_seed(baseline, summary_key)
-            seeds = sorted(mine.keys() & theirs.keys())
-            test = statistics.compare_paired([mine[s] for s in seeds], [theirs[s] for s in seeds])
+            mine, theirs = _per_episode(group, metric, episodes), _per_episode(baseline, metric, episodes)
+            unit = "episode"
+            if not mine or not theirs:
+                mine, theirs, unit = _per_seed(group, summary_key), _per_seed(baseline, summary_key), "seed"
+            shared = sorted(mine.keys() & theirs.keys())
+            test = statistics.compare_paired([mine[k] for k in shared], [theirs[k] for k in shared], unit)
             return PairedComparison(name, test)
     return None
+
+
+def _per_episode(group: Group, metric: str, episodes: Histories | None) -> dict[tuple[int, int], float]:
+    """The group's metric by (seed, episode); empty unless every trial logged it per episode."""
+    if not episodes:
+        return {}
+    by_episode: dict[tuple[int, int], list[float]] = defaultdict(list)
+    for trial in group.trials:
+        # A step logged twice (never, unless a run was resumed by hand) counts once, with its last value.
+        history = dict(episodes.get(trial.run_id, {}).get(metric, []))
+        if not history:
+            return {}
+        for episode, value in history.items():
+            if math.isfinite(value):
+                by_episode[(trial.seed, int(episode))].append(value)
+    return {key: float(np.mean(values)) for key, values in by_episode.items()}
 
 
 def _per_seed(group: Group, summary_key: str) -> dict[int, float]:
@@ -353,10 +380,11 @@ def _paired_text(group: Group, summary: Summary) -> str:
         return "-"
     name, t = group.paired.baseline, group.paired.test
     difference = f"{t.difference:+.2f}" if summary.metric in RATE_METRICS else f"{t.difference:+.4g}"
+    units = f"{t.pairs} {t.unit}{'' if t.pairs == 1 else 's'}"
     if t.discordant is not None:
-        detail = f"McNemar exact, {t.discordant[0]} gained : {t.discordant[1]} lost of {t.pairs} seeds"
+        detail = f"McNemar exact, {t.discordant[0]} gained : {t.discordant[1]} lost of {units}"
     else:
-        detail = f"{t.test}, {t.pairs} seed{'' if t.pairs == 1 else 's'}"
+        detail = f"{t.test}, {units}"
     if math.isfinite(t.p_value):
         detail += f", p={t.p_value:.2g}"
     return f"{difference} vs {name} ({detail})"
@@ -377,7 +405,7 @@ def format_table(summary: Summary) -> str:
     metric = summary.metric
     header = ("task", "configuration", "n", f"{metric} [95% CI]", "IQM", "s/step", "published", "vs published")
     if summary.baselines:
-        header += ("vs baseline (paired seeds)",)
+        header += ("vs baseline (paired)",)
     rows = [header]
     for index, g in enumerate(summary.groups):
         seconds = g.value("mean_planning_seconds_per_step")
@@ -403,7 +431,8 @@ def format_table(summary: Summary) -> str:
     if sources:
         notes.append("published: " + "; ".join(sources) + "; tests one-sided in the direction of the difference, 5%")
     if summary.baselines:
-        notes.append("vs baseline: mean difference over the seeds both ran; tests two-sided")
+        notes.append("vs baseline: mean difference over the seeds both ran, or over their episodes where each "
+                     "starts alike in both; tests two-sided")
     return "\n".join(lines + notes)
 
 
@@ -420,8 +449,8 @@ def to_csv(summary: Summary) -> str:
         ["task", "method", *label_keys, "variant", *setting_keys, "trials", f"{m}_mean", f"{m}_sem",
          f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes", "episodes",
          "seconds_per_step", "published", "published_spread", "published_runs", "published_source", "verdict",
-         "test", "p_value", "runs_to_settle", "best", "paired_baseline", "paired_seeds", f"paired_{m}_difference",
-         "paired_test", "paired_p_value"]
+         "test", "p_value", "runs_to_settle", "best", "paired_baseline", "paired_pairs", f"paired_{m}_difference",
+         "paired_test", "paired_p_value", "paired_unit"]
     )  # fmt: skip
 
     def cell(value) -> str:
@@ -447,9 +476,9 @@ def to_csv(summary: Summary) -> str:
 
 def _paired_cells(group: Group, cell) -> list[Any]:
     if group.paired is None:
-        return ["", "", "", "", ""]
+        return ["", "", "", "", "", ""]
     t = group.paired.test
-    return [group.paired.baseline, t.pairs, cell(t.difference), t.test, cell(t.p_value)]
+    return [group.paired.baseline, t.pairs, cell(t.difference), t.test, cell(t.p_value), t.unit]
 
 
 def _error_bars(groups: list[Group]) -> np.ndarray:

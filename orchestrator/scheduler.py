@@ -168,6 +168,15 @@ def report_histories(tracker: Tracker, runs: list[TrialRun], program) -> report.
     return tracker.histories([r.run_id for r in runs], program.curves)
 
 
+def episode_histories(tracker: Tracker, runs: list[TrialRun], program, metric: str,
+                      pairing: report.Pairing | None) -> report.Histories | None:  # fmt: skip
+    """The sweep's metric per episode, for comparing variants with their baseline episode by episode; None when
+    the sweep names no baseline or the method's episodes do not start alike across configurations."""
+    if pairing is None or program is None or not program.paired_episodes or len(runs) > MAX_CURVE_RUNS:
+        return None
+    return tracker.histories([r.run_id for r in runs], [metric])
+
+
 def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
     """Connect to a cluster at ``address`` or start a local one; True if this call started Ray.
 
@@ -619,9 +628,10 @@ class SweepScheduler:
 
         runs = [r for r in self.tracker.trial_runs(parent_id) if r.status == FINISHED]
         planned = {trial.key for trial in self.loaded.trials}
+        metric, pairing = self.sweep.metric_name(), report.pairing(self.sweep)
+        episodes = episode_histories(self.tracker, runs, self.program, metric, pairing)
         summary = report.summarize(
-            runs, self.sweep.metric_name(), self.sweep.metric.mode, self.loaded.references, planned,
-            report.pairing(self.sweep),
+            runs, metric, self.sweep.metric.mode, self.loaded.references, planned, pairing, episodes
         )
         table = report.format_table(summary)
         histories = report_histories(self.tracker, runs, self.program)

@@ -188,16 +188,18 @@ class PairedTest(NamedTuple):
     p_value: float
     """Two-sided: which way an ablation goes is the question, not an assumption."""
     discordant: tuple[int, int] | None = None
-    """McNemar: (seeds only the configuration succeeded on, seeds only the baseline succeeded on)."""
+    """McNemar: (pairs only the configuration succeeded on, pairs only the baseline succeeded on)."""
+    unit: str = "seed"
+    """What a pair is: a seed, or an episode (same seed and episode index, so the same start)."""
 
 
-def compare_paired(values: np.ndarray, baseline: np.ndarray) -> PairedTest:
-    """Paired test of per-seed values against the baseline's on the same seeds.
+def compare_paired(values: np.ndarray, baseline: np.ndarray, unit: str = "seed") -> PairedTest:
+    """Paired test of values against the baseline's on the same seeds (or the same episodes of them).
 
-    Success flags (every value 0 or 1: one episode per seed) get McNemar's exact test, the binomial test of
-    the discordant seeds: seeds where both succeed or both fail say nothing about the difference, and with
-    paired seeds (the same start states) the test needs far fewer episodes than comparing two rates. Other
-    values (returns, rates over several episodes) get the paired t-test.
+    Success flags (every value 0 or 1: one episode per pair) get McNemar's exact test, the binomial test of
+    the discordant pairs: pairs where both succeed or both fail say nothing about the difference, and with
+    paired starts the test needs far fewer episodes than comparing two rates. Other values (returns, rates over
+    several episodes) get the paired t-test.
     """
     values, baseline = np.asarray(values, dtype=float), np.asarray(baseline, dtype=float)
     differences = values - baseline
@@ -206,7 +208,8 @@ def compare_paired(values: np.ndarray, baseline: np.ndarray) -> PairedTest:
     if n and np.isin(values, (0.0, 1.0)).all() and np.isin(baseline, (0.0, 1.0)).all():
         gained, lost = int(np.sum(differences > 0)), int(np.sum(differences < 0))
         p_value = float(stats.binomtest(gained, gained + lost, 0.5).pvalue) if gained + lost else 1.0
-        return PairedTest(n, mean, "McNemar exact", p_value, (gained, lost))
+        return PairedTest(n, mean, "McNemar exact", p_value, (gained, lost), unit)
     if n < 2 or np.ptp(differences) == 0:
-        return PairedTest(n, mean, "too few pairs to test" if n < 2 else "paired t-test undefined", math.nan)
-    return PairedTest(n, mean, "paired t-test", float(stats.ttest_rel(values, baseline).pvalue))
+        test = "too few pairs to test" if n < 2 else "paired t-test undefined"
+        return PairedTest(n, mean, test, math.nan, unit=unit)
+    return PairedTest(n, mean, "paired t-test", float(stats.ttest_rel(values, baseline).pvalue), unit=unit)

@@ -175,10 +175,11 @@ class Sweep(_UserModel):
     metric: Metric = Metric()
     """The figure summarising each configuration in reports."""
     baseline: list[str] = []
-    """Variants the others are compared with seed by seed in reports (a name or a list): each configuration
-    meets the first listed baseline of its own task, labels (algorithm, budget) and grid point on the seeds both
-    ran, e.g. [icem, cem_mpc] for ablations of both. Success flags get McNemar's exact test, returns the paired
-    t-test."""
+    """Variants the others are compared with in reports (a name or a list): each configuration meets the first
+    listed baseline of its own task, labels (algorithm, budget) and grid point on the seeds both ran, e.g.
+    [icem, cem_mpc] for ablations of both; episode by episode where the method's episodes start alike in every
+    configuration (mpc: episode i of a seed starts from the same state). Success flags get McNemar's exact test,
+    returns the paired t-test."""
     resources: Resources = Resources()
     """CPU and worker layout of each trial."""
     retries: int = Field(1, ge=0, le=10)

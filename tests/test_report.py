@@ -402,6 +402,28 @@ def test_variants_meet_the_baseline_of_their_own_algorithm_on_shared_seeds():
     assert report.format_table(report.summarize(runs, "episode_return")).count("vs icem") == 0
 
 
+def test_variants_meet_their_baseline_episode_by_episode_where_both_logged_episodes():
+    """One seed of 8 episodes per variant, starting alike: McNemar over the episodes, not one pair of seeds."""
+    runs = [
+        variant_run("pets", "icem", 0, 0.5, key="mean_box_drops"),
+        variant_run("razer", "icem", 0, 0.125, key="mean_box_drops"),
+        variant_run("unlogged", "icem", 0, 0.0, key="mean_box_drops"),
+    ]
+    drops = {"pets0": [1, 0, 1, 1, 0, 0, 1, 0], "razer0": [0, 0, 0, 1, 0, 0, 0, 0]}
+    episodes = {run_id: {"box_drops": list(enumerate(map(float, flags)))} for run_id, flags in drops.items()}
+    summary = report.summarize(runs, "box_drops", "min", pairing=report.Pairing(("pets",)), episodes=episodes)
+    paired = {g.variant: g.paired.test for g in summary.groups if g.paired}
+    # Episodes 0, 2 and 6 dropped under PETS alone, episode 3 under both: 0 gained, 3 lost, p = 2 / 2^3.
+    assert paired["razer"].unit == "episode" and paired["razer"].pairs == 8
+    assert paired["razer"].discordant == (0, 3) and paired["razer"].p_value == pytest.approx(0.25)
+    assert paired["razer"].difference == pytest.approx(-3 / 8)
+    # A run without per-episode values falls back to its seed.
+    assert paired["unlogged"].unit == "seed" and paired["unlogged"].pairs == 1
+    table = report.format_table(summary)
+    assert "-0.38 vs pets (McNemar exact, 0 gained : 3 lost of 8 episodes, p=0.25)" in table
+    assert "vs pets (too few pairs to test, 1 seed)" in table
+
+
 def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
     """``icemlab report NAME`` reads the baseline from the sweep file recorded when it ran."""
     text = "name: paired\ntask: point_reach\nmetric: {name: success}\nbaseline: full\n"
@@ -423,6 +445,29 @@ def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
     rows = {row["variant"]: row for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}
     assert rows["ablated"]["paired_baseline"] == "full" and rows["ablated"]["paired_test"] == "McNemar exact"
     assert rows["full"]["paired_baseline"] == ""
+
+
+def test_report_pairs_mpc_episodes_that_start_alike(tmp_path):
+    """``icemlab report`` reads the per-episode metric of an mpc sweep with a baseline and pairs episodes."""
+    text = "name: episodes\ntask: point_reach\nmetric: {name: success}\nbaseline: full\n"
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("episodes", "episodes", "hash", text, {}, "dev")
+    from orchestrator.tracking import TAG_VARIANT
+
+    for variant, flags in {"full": [1, 1, 1, 0, 1, 1], "ablated": [0, 1, 0, 0, 0, 0]}.items():
+        params = {"method": "mpc", "task": "point_reach", "seed": 0, "planner.algorithm": "icem",
+                  "planner.budget": 50, "episodes": len(flags)}  # fmt: skip
+        tags = {"method": "mpc", "task": "point_reach", "algorithm": "icem", "budget": "50", TAG_VARIANT: variant}
+        run_id = tracker.start_trial(parent, f"{variant}0", f"{variant}/0", params, tags)
+        for episode, flag in enumerate(flags):
+            tracker.log_round(run_id, episode, episode, {"success": float(flag)}, {}, 0)
+        tracker.end_trial(run_id, FINISHED, {"success_rate": float(np.mean(flags))})
+    tracker.end_sweep(parent, FINISHED, {})
+    result = cli("report", "episodes", "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "-0.67 vs full (McNemar exact, 0 gained : 4 lost of 6 episodes, p=0.12)" in result.stdout
+    rows = {row["variant"]: row for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}
+    assert rows["ablated"]["paired_unit"] == "episode" and rows["ablated"]["paired_pairs"] == "6"
 
 
 def test_a_variants_name_stands_for_its_overrides_and_a_grid_over_it_stays_in_the_name():

@@ -79,7 +79,8 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     result = cli("run", str(sweep), "--quiet", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     table = [line for line in result.stdout.splitlines() if line.startswith("point_reach")]  # the summary table
-    assert len(table) == 4 and sum("vs full (too few pairs to test, 1 seed)" in line for line in table) == 2
+    # Episode i starts alike in every variant: each is paired with its baseline episode by episode.
+    assert len(table) == 4 and sum("vs full (paired t-test, 2 episodes, p=" in line for line in table) == 2
 
     parent, children = sweep_runs(default_tracking_uri(tmp_path), "landing")
     assert parent.status == FINISHED

@@ -226,6 +226,10 @@ class Program(ABC):
     """Metrics that reports draw as curves against their step, one line per configuration (mean over seeds)."""
     curve_step: ClassVar[str] = "step"
     """What the step of those curves counts (the reports' x-axis label)."""
+    paired_episodes: ClassVar[bool] = False
+    """Whether episode i of a trial starts alike (state, layout, random streams) in every configuration run with
+    the trial's seed, and logs each headline metric per episode at step i: reports then compare a variant with
+    its baseline episode by episode rather than seed by seed."""
     role_names: ClassVar[tuple[str, ...]] = ()
     """Names of the roles :meth:`roles_for` may declare (sweeps size them under ``resources.workers``)."""
 

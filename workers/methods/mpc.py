@@ -82,6 +82,9 @@ class MpcProgram(Program):
     label_paths = {"algorithm": ("algorithm", "planner.algorithm"), "budget": ("planner.budget",)}
     curves = ("step/return",)
     curve_step = "environment step"
+    # An episode's start state and the seeds of its noise and planner are functions of (trial seed, episode
+    # index) alone (episode_seed), so a variant and its baseline meet the same layouts.
+    paired_episodes = True
     role_names = ("simulation",)
 
     settings: MpcSettings
