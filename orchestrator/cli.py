@@ -324,6 +324,8 @@ def _sweep_name(argument: str):
 
 PACE_TRIALS = 10
 """A running sweep's time to go is told from the pace of its last this many finished trials."""
+PACE_ROUNDS = 5
+"""A running trial's time to go is told from the pace of its last this many rounds."""
 
 
 def _trial_counts(sweep, tracker) -> str:
@@ -367,10 +369,11 @@ def cmd_status(args) -> int:
     metric = _recorded_metric(_recorded_sweep(tracker, parent.run_id))
     for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
         shown = _trial_metric_text(tracker, child, metric[0] if metric else None)
-        print(
-            f"  {child.trial_key}  {child.status:9s} {child.name:44s} rounds {child.rounds:>4d}  "
-            f"attempts {child.attempts}  {shown}"
-        )
+        rounds = f"{child.rounds:>4d}" + (f"/{child.planned_rounds}" if child.planned_rounds else "")
+        if parent.status == "RUNNING" and child.status == "RUNNING":
+            shown += _trial_time_to_go(tracker, child)
+        print(f"  {child.trial_key}  {child.status:9s} {child.name:44s} rounds {rounds}  attempts {child.attempts}  "
+              f"{shown}")  # fmt: skip
         if child.error:
             print(f"      {child.error_class or 'error'}: {child.error.strip().splitlines()[-1][:300]}")
         if args.provenance:
@@ -399,6 +402,24 @@ def _trial_metric_text(tracker, child, metric: str | None) -> str:
         return ""
     values = list(by_round.values())
     return f"{metric} {sum(values) / len(values):.3g} so far (mean of the {len(values)} logged)"
+
+
+def _trial_time_to_go(tracker, child) -> str:
+    """'  about 1 h 40 min to go (5 rounds at the pace of its last 5)' for a running trial whose planned rounds are
+    recorded; empty before it has logged a round."""
+    from orchestrator.plan import duration_text
+    from orchestrator.tracking import ROUND_SECONDS
+
+    remaining = (child.planned_rounds or 0) - child.rounds
+    if remaining <= 0:
+        return ""
+    by_round = dict(tracker.metric_history(child.run_id, ROUND_SECONDS))  # a round logged twice counts once
+    recent = [by_round[index] for index in sorted(by_round)[-PACE_ROUNDS:]]
+    if not recent:
+        return ""
+    seconds = remaining * sum(recent) / len(recent)
+    return (f"  about {duration_text(seconds)} to go ({remaining} round{'' if remaining == 1 else 's'} at the pace "
+            f"of its last {len(recent)})")  # fmt: skip
 
 
 def _recorded_sweep(tracker, run_id: str) -> dict:

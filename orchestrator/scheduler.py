@@ -40,6 +40,7 @@ from orchestrator.tracking import (
     KILLED,
     PARAM_THREADS,
     ROUND_SECONDS,
+    TAG_PLANNED_ROUNDS,
     TAG_THREADS,
     TAG_THREADS_CHANGED,
     Tracker,
@@ -502,6 +503,7 @@ class SweepScheduler:
         else:
             self.tracker.reopen_trial(state.run_id, state.attempts)
         self.tracker.record_provenance(state.run_id, self._provenance)  # the code that runs (or continues) it
+        self.tracker.set_tags(state.run_id, {TAG_PLANNED_ROUNDS: str(state.total_rounds)})  # for `icemlab status`
         self._record_threads(state)
         group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())

@@ -53,6 +53,8 @@ TAG_ATTEMPTS = "icemlab.attempts"
 TAG_ERROR = "icemlab.error"
 TAG_ERROR_CLASS = "icemlab.error_class"
 TAG_ROUNDS = "icemlab.rounds"
+TAG_PLANNED_ROUNDS = "icemlab.planned_rounds"
+"""How many rounds the trial has in all (set at every attempt)."""
 TAG_FAILED_TRIALS = "icemlab.failed_trials"
 TAG_INTERRUPTED = "icemlab.interrupted"
 TAG_PLANNED_TRIALS = "icemlab.planned_trials"
@@ -152,6 +154,12 @@ class TrialRun(NamedTuple):
     def rounds(self) -> int:
         """Rounds logged so far."""
         return int(self.tags.get(TAG_ROUNDS, "0"))
+
+    @property
+    def planned_rounds(self) -> int | None:
+        """Rounds the trial has in all (None: not recorded)."""
+        value = self.tags.get(TAG_PLANNED_ROUNDS, "")
+        return int(value) if value.isdigit() else None
 
     @property
     def overrides(self) -> dict[str, Any]:

@@ -508,6 +508,22 @@ def test_status_shows_each_trials_sweep_metric_and_a_running_trials_figure_so_fa
     assert lines["running"].endswith("box_drops 0.667 so far (mean of the 3 logged)")
 
 
+def test_status_tells_a_running_trials_rounds_and_time_to_go_from_its_recent_rounds(tmp_path):
+    from orchestrator.tracking import TAG_PLANNED_ROUNDS
+
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("long", "long", "hash", "name: long\n", {}, "dev", planned_trials=1)
+    run_id = tracker.start_trial(parent, "slow", "slow", {"method": "mpc", "seed": 0}, {"method": "mpc"})
+    tracker.set_tags(run_id, {TAG_PLANNED_ROUNDS: "10"})
+    for index, seconds in enumerate([600.0, 60.0, 60.0, 120.0, 120.0, 240.0]):  # the first round is left out
+        tracker.log_round(run_id, index, index, {}, {}, 0, seconds=seconds)
+    line = cli("status", "long", cwd=tmp_path).stdout.splitlines()[1]
+    # 4 rounds to go at the mean of the last 5 (120 s): 8 minutes.
+    assert "rounds    6/10" in line and line.endswith("about 8 min 00 s to go (4 rounds at the pace of its last 5)")
+    tracker.end_sweep(parent, "KILLED", {})
+    assert "to go" not in cli("status", "long", cwd=tmp_path).stdout  # a stopped sweep is not on its way
+
+
 def test_report_of_a_sweep_without_a_finished_trial_points_to_status(tmp_path):
     tracker = Tracker(default_tracking_uri(tmp_path))
     parent = tracker.start_sweep("young", "young", "hash", "name: young\n", {}, "dev", planned_trials=2)
