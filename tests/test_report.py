@@ -424,49 +424,45 @@ def test_variants_meet_their_baseline_episode_by_episode_where_both_logged_episo
     assert "vs pets (too few pairs to test, 1 seed)" in table
 
 
-def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
-    """``icemlab report NAME`` reads the baseline from the sweep file recorded when it ran."""
-    text = "name: paired\ntask: point_reach\nmetric: {name: success}\nbaseline: full\n"
-    tracker = Tracker(default_tracking_uri(tmp_path))
-    parent = tracker.start_sweep("paired", "paired", "hash", text, {}, "dev")
+def store_paired_success_sweep(tmp_path, name: str, flags: dict[str, dict[int, list[int]]], per_episode: bool):
+    """A finished point_reach sweep with baseline ``full``: variant -> seed -> success flag of each episode, logged
+    per episode (as mpc logs them) when ``per_episode``; the report reads it back."""
     from orchestrator.tracking import TAG_VARIANT
 
-    for variant, flags in {"full": [1, 1, 1, 0], "ablated": [0, 1, 0, 0]}.items():
-        for seed, flag in enumerate(flags):
+    text = f"name: {name}\ntask: point_reach\nmetric: {{name: success}}\nbaseline: full\n"
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep(name, name, "hash", text, {}, "dev")
+    for variant, by_seed in flags.items():
+        for seed, episodes in by_seed.items():
             params = {"method": "mpc", "task": "point_reach", "seed": seed, "planner.algorithm": "icem",
-                      "planner.budget": 50, "episodes": 1}  # fmt: skip
+                      "planner.budget": 50, "episodes": len(episodes)}  # fmt: skip
             tags = {"method": "mpc", "task": "point_reach", "algorithm": "icem", "budget": "50", TAG_VARIANT: variant}
             run_id = tracker.start_trial(parent, f"{variant}{seed}", f"{variant}/{seed}", params, tags)
-            tracker.end_trial(run_id, FINISHED, {"success_rate": float(flag)})
+            for episode, flag in enumerate(episodes if per_episode else []):
+                tracker.log_round(run_id, episode, episode, {"success": float(flag)}, {}, 0)
+            tracker.end_trial(run_id, FINISHED, {"success_rate": float(np.mean(episodes))})
     tracker.end_sweep(parent, FINISHED, {})
-    result = cli("report", "paired", "--output", str(tmp_path / "out"), cwd=tmp_path)
+    result = cli("report", name, "--output", str(tmp_path / "out"), cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    assert "-0.50 vs full (McNemar exact, 0 gained : 2 lost of 4 seeds, p=0.5)" in result.stdout
     rows = {row["variant"]: row for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}
+    return result.stdout, rows
+
+
+def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
+    """``icemlab report NAME`` reads the baseline from the sweep file recorded when it ran."""
+    flags = {"full": [1, 1, 1, 0], "ablated": [0, 1, 0, 0]}
+    by_seed = {variant: {seed: [flag] for seed, flag in enumerate(values)} for variant, values in flags.items()}
+    table, rows = store_paired_success_sweep(tmp_path, "paired", by_seed, per_episode=False)
+    assert "-0.50 vs full (McNemar exact, 0 gained : 2 lost of 4 seeds, p=0.5)" in table
     assert rows["ablated"]["paired_baseline"] == "full" and rows["ablated"]["paired_test"] == "McNemar exact"
-    assert rows["full"]["paired_baseline"] == ""
+    assert rows["ablated"]["paired_unit"] == "seed" and rows["full"]["paired_baseline"] == ""
 
 
 def test_report_pairs_mpc_episodes_that_start_alike(tmp_path):
     """``icemlab report`` reads the per-episode metric of an mpc sweep with a baseline and pairs episodes."""
-    text = "name: episodes\ntask: point_reach\nmetric: {name: success}\nbaseline: full\n"
-    tracker = Tracker(default_tracking_uri(tmp_path))
-    parent = tracker.start_sweep("episodes", "episodes", "hash", text, {}, "dev")
-    from orchestrator.tracking import TAG_VARIANT
-
-    for variant, flags in {"full": [1, 1, 1, 0, 1, 1], "ablated": [0, 1, 0, 0, 0, 0]}.items():
-        params = {"method": "mpc", "task": "point_reach", "seed": 0, "planner.algorithm": "icem",
-                  "planner.budget": 50, "episodes": len(flags)}  # fmt: skip
-        tags = {"method": "mpc", "task": "point_reach", "algorithm": "icem", "budget": "50", TAG_VARIANT: variant}
-        run_id = tracker.start_trial(parent, f"{variant}0", f"{variant}/0", params, tags)
-        for episode, flag in enumerate(flags):
-            tracker.log_round(run_id, episode, episode, {"success": float(flag)}, {}, 0)
-        tracker.end_trial(run_id, FINISHED, {"success_rate": float(np.mean(flags))})
-    tracker.end_sweep(parent, FINISHED, {})
-    result = cli("report", "episodes", "--output", str(tmp_path / "out"), cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
-    assert "-0.67 vs full (McNemar exact, 0 gained : 4 lost of 6 episodes, p=0.12)" in result.stdout
-    rows = {row["variant"]: row for row in csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))}
+    flags = {"full": {0: [1, 1, 1, 0, 1, 1]}, "ablated": {0: [0, 1, 0, 0, 0, 0]}}
+    table, rows = store_paired_success_sweep(tmp_path, "episodes", flags, per_episode=True)
+    assert "-0.67 vs full (McNemar exact, 0 gained : 4 lost of 6 episodes, p=0.12)" in table
     assert rows["ablated"]["paired_unit"] == "episode" and rows["ablated"]["paired_pairs"] == "6"
 
 
