@@ -204,7 +204,7 @@ def coverage_figure(summary: Any):
 PENALTY_SETTING = "ensemble.aleatoric_weight"
 """The sweep setting that is RAZER's w_A when ``mpc`` plans on a noisy-simulator ensemble (w_A = 0: PETS)."""
 PARTICLES_SETTING = "ensemble.particles"
-"""Particles per sequence: a line's drop rate depends on it (README, Fig. 19b), so every line names it."""
+"""Particles per sequence: a line's drop rate depends on it (docs/results/razer.md, Fig. 19b), so every line names it."""
 
 
 def _particles(group: Any) -> str:

@@ -392,7 +392,7 @@ def test_the_report_gives_each_setting_its_drop_rate_over_episodes():
     assert summary.groups[summary.best].variant == "razer_wA2"
 
 
-# ------------------------------------------------------------------ why RAZER lifts in the zone (README)
+# ------------------------------------------------------------------ why RAZER lifts in the zone (docs/results/razer.md)
 def carry_plan(observation, zone_end: float, slide: bool, horizon: int = 15) -> np.ndarray:
     """A scripted plan from a held box: straight to the target, or low along the table past the zone first."""
     grip, goal, rest = observation[GRIP_POS].copy(), observation[GOAL], observation[BOX_POS][2]

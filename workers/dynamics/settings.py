@@ -199,7 +199,7 @@ class RazerSettings(BaseModel):
     """Var_E of eq. 24: ``means_and_variances``, the variance over members of their predicted means plus that of
     their predicted variances, as the equation is written; ``means``, the first term alone, the usual
     disagreement measure. The second term is in squared units of the first, and wherever one member's
-    log-variance nears its upper bound it outweighs the first many times over (README, BridgeMaze)."""
+    log-variance nears its upper bound it outweighs the first many times over (docs/results/razer.md, BridgeMaze)."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) combines dimensions: sum of per-dim std (default), sqrt of the summed variance, mean std."""
     uncertainty_dims: tuple[int, ...] | None = None

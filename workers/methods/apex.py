@@ -36,7 +36,7 @@ Choices where the thesis leaves room (see also workers/policy/*):
   expert's shifted plan from the previous state is no prior for the next (``relabel_restart:
   chunk``, the reading before, runs Alg. 2 over each chunk of consecutive states as over an
   episode). Per state the labels of the same state spread less over planner seeds and lie
-  closer to the policy (README, APEX).
+  closer to the policy (docs/results/apex.md).
 """
 
 from __future__ import annotations

@@ -156,7 +156,7 @@ class RazerCostSettings(_Settings):
     epistemic_terms: EpistemicTerms = "means_and_variances"
     """Var_E of eq. 24: the members' spread of predicted means plus that of predicted variances, as written, or of
     the ``means`` alone (the variances' spread is in squared units and dominates wherever a member's log-variance
-    nears its upper bound; README, BridgeMaze)."""
+    nears its upper bound; docs/results/razer.md, BridgeMaze)."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) of eq. 26-27 combines dimensions: sum of per-dimension std (default), sqrt of the summed
     variance, or mean std."""

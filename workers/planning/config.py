@@ -122,7 +122,7 @@ class PlannerConfig(BaseModel):
     """Which colorednoise release the colored noise follows: "1.1", as the authors' public iCEM code ran (the
     thesis's figures), leaves the constant (DC) and Nyquist terms as drawn; "2.1" (from June 2022) doubles their
     variance (workers/planning/noise.py). At beta 3 over h = 30 "2.1" gives the per-sequence constant offset twice
-    the variance. On Fetch and Relocate "1.1" reaches Table 3 and "2.1" falls short (README, "Measured")."""
+    the variance. On Fetch and Relocate "1.1" reaches Table 3 and "2.1" falls short (docs/results/icem.md)."""
     momentum: float | None = Field(None, ge=0, lt=1)
     """Momentum alpha of the refit: mu <- alpha mu + (1 - alpha) mu_elites, same for sigma (section 3.1.1)."""
     population_decay: float | None = Field(None, ge=1)

@@ -10,7 +10,7 @@ is rescaled and shifted with it, so the carried-over network computes the
 same function of the raw observation as before (``keep_function``).
 ``reinitialize: true`` starts every training from a fresh network and
 optimiser instead, a departure from Alg. 3 that measured better on
-HalfCheetah (README, APEX, measures both).
+HalfCheetah (docs/results/apex.md measures both).
 """
 
 from __future__ import annotations
