@@ -9,6 +9,8 @@ summarised trial runs.
   coverage-over-iterations curves are among the program's report curves (``MbrlProgram.curves``).
 * :func:`penalty_figure`: the sweep's metric against ``ensemble.aleatoric_weight`` for ``mpc`` sweeps that plan
   on an ensemble of noisy simulators (Noisy-FetchPickAndPlace: box drops against w_A, Fig. 19b as drawn).
+* :func:`noise_figure`: the same sweeps' metric against a swept noise option, one line per w_A (Fig. 19b as its
+  caption reads: a fixed w_A, the noise varied).
 
 The frozen rows come from the trials' summary metrics ``frozen/<row>/<key>`` (workers/methods/mbrl.py):
 ``pets`` and ``razer_wA_<w>`` rows with ``success_rate``, ``mean_return``, ``falls_rate``,
@@ -240,15 +242,66 @@ def penalty_figure(summary: Any):
     return _finished(figure, axis, "against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)")
 
 
+def _task_option(group: Any, option: str) -> float | None:
+    """The value of a task option all of a group's trials ran with, from their logged settings (a group that ran
+    the option's default has no swept setting that says it); None when it varies or is not logged."""
+    values = {trial.params.get(option) for trial in group.trials}
+    if len(values) != 1 or None in values:
+        return None
+    try:
+        return float(values.pop())
+    except ValueError:
+        return None
+
+
+def _logged_task_option(summary: Any) -> str | None:
+    """The numeric task option the groups ran with different values of (the noise strength), if exactly one."""
+    keys = {key for g in summary.groups for t in g.trials for key in t.params if key.startswith("task_options.")}
+    swept = [key for key in sorted(keys) if len({_task_option(g, key) for g in summary.groups} - {None}) > 1]
+    return swept[0] if len(swept) == 1 else None
+
+
+def noise_figure(summary: Any):
+    """Fig. 19b as its caption and text read it (a fixed w_A, "even when considerable noise is applied"): the
+    sweep's metric against the noise, a swept task option such as ``task_options.noise_std``, one line per w_A
+    (0: PETS); None unless the configurations plan on a noisy-simulator ensemble and differ in one task option.
+    Bars are the groups' 95% intervals (Wilson over episodes for rates)."""
+    groups = [g for g in summary.groups if PENALTY_SETTING in g.setting]
+    option = _logged_task_option(summary) if groups else None
+    if option is None:
+        return None
+    lines: dict[str, list[tuple[float, Any]]] = defaultdict(list)
+    for group in groups:
+        x = _task_option(group, option)
+        if x is None:
+            continue
+        weight = group.setting[PENALTY_SETTING]
+        rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k not in (PENALTY_SETTING, option))
+        name = "PETS" if weight == 0 else f"RAZER w_A={weight}"
+        lines[" ".join(filter(None, [name, _particles(group), rest]))].append((x, group))
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for name, points in sorted(lines.items()):
+        points.sort(key=lambda point: point[0])
+        axis.errorbar([x for x, _ in points], [g.mean for _, g in points],
+                      yerr=statistics.error_bars([g.interval for _, g in points]), marker="o", capsize=3,
+                      label=name)  # fmt: skip
+    axis.set_xlabel(option.removeprefix("task_options."))
+    axis.set_ylabel(summary.metric.replace("_", " "))
+    if all(g.successes is not None for g in groups):
+        axis.set_ylim(-0.02, 1.02)
+    return _finished(figure, axis, "against the noise (thesis Fig. 19b: RAZER's drop rate < 0.2)")
+
+
 def write_files(summary: Any, directory: Path) -> list[Path]:
     """The chapter 5 plots that fit the sweep (frozen_success.png, failure_rate.png, coverage.png,
-    penalty.png) in ``directory``."""
+    penalty.png, noise.png) in ``directory``."""
     paths = []
     for name, make in (
         ("frozen_success", success_figure),
         ("failure_rate", drop_rate_figure),
         ("coverage", coverage_figure),
         ("penalty", penalty_figure),
+        ("noise", noise_figure),
     ):
         figure = make(summary)
         if figure is None:

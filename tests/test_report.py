@@ -341,6 +341,34 @@ def test_noisy_fetch_drop_rates_are_drawn_against_the_aleatoric_penalty(tmp_path
     assert tmp_path / "penalty.png" in report.write_files(summary, tmp_path)
 
 
+def test_noisy_fetch_drop_rates_are_drawn_against_the_noise_one_line_per_penalty(tmp_path):
+    """Fig. 19b as its caption reads: a fixed w_A per line, the noise on the x-axis. Rows that ran the default
+    noise (no swept setting says it) are placed by their logged settings."""
+    from orchestrator import report_mbrl
+    from orchestrator.tracking import TAG_OVERRIDE, TAG_VARIANT, TrialRun
+
+    def run(weight: float, noise: float | None, drops: float):
+        tags = {TAG_VARIANT: f"w{weight}", f"{TAG_OVERRIDE}ensemble.aleatoric_weight": json.dumps(weight)}
+        if noise is not None:
+            tags[f"{TAG_OVERRIDE}task_options.noise_std"] = json.dumps(noise)
+        params = {"method": "mpc", "task": "noisy_fetch_pick_place", "seed": "0", "episodes": "20",
+                  "ensemble.particles": "16", "task_options.noise_std": str(noise or 1.0),
+                  "task_options.noise_mean": "0.0"}  # fmt: skip
+        return TrialRun(f"{weight}-{noise}", "key", FINISHED, "name", params, tags, {"mean_box_drops": drops})
+
+    runs = [run(0.0, None, 0.25), run(0.5, None, 0.05), run(0.0, 2.0, 0.6), run(0.5, 2.0, 0.15)]
+    summary = report.summarize(runs, "box_drops", mode="min", references=[])
+    figure = report_mbrl.noise_figure(summary)
+    lines = {container.get_label(): container.lines[0] for container in figure.axes[0].containers}
+    assert sorted(lines) == ["PETS ensemble.particles=16", "RAZER w_A=0.5 ensemble.particles=16"]
+    assert lines["PETS ensemble.particles=16"].get_xdata().tolist() == [1.0, 2.0]
+    assert lines["RAZER w_A=0.5 ensemble.particles=16"].get_ydata().tolist() == pytest.approx([0.05, 0.15])
+    assert figure.axes[0].get_xlabel() == "noise_std"
+    same_noise = report.summarize(runs[:2], "box_drops", mode="min", references=[])
+    assert report_mbrl.noise_figure(same_noise) is None  # nothing to draw against
+    assert tmp_path / "noise.png" in report.write_files(summary, tmp_path)
+
+
 def test_the_penalty_figure_names_a_particle_count_that_the_sweep_fixed_in_its_base():
     """A sweep that sets the count in its base (razer_noisy_fetch_particles.yaml) has no swept setting that says
     it, yet its drop rates depend on it; the logged settings do."""
