@@ -108,8 +108,12 @@ def build_parser() -> argparse.ArgumentParser:
     report_cmd = commands.add_parser(
         "report",
         help="summary table and plots of a sweep, next to the thesis",
-        description="Summarise the latest run of a sweep: mean +- sem per configuration "
-        "with the thesis's Table 3 figures, a CSV and a budget plot (Fig. 5 style).",
+        description="Summarise the latest run of a sweep: mean +- sem per configuration with its 95% interval, "
+        "next to the thesis's published figure where there is one (Tables 3 and 9), and each variant against the "
+        "sweep's baseline (paired by seed, or by episode where episodes start alike); summary.csv, summary.txt "
+        "and the plots that fit the sweep: budget curves (Fig. 5), variants, each method's curves over its steps, "
+        "Fig. 19a/19b (frozen success, drop rate against w_A and against the noise), "
+        "coverage.",
     )
     report_cmd.add_argument("sweep", help="sweep file or sweep name")
     report_cmd.add_argument(
