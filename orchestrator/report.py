@@ -382,7 +382,10 @@ def _paired_text(group: Group, summary: Summary) -> str:
     difference = f"{t.difference:+.2f}" if summary.metric in RATE_METRICS else f"{t.difference:+.4g}"
     units = f"{t.pairs} {t.unit}{'' if t.pairs == 1 else 's'}"
     if t.discordant is not None:
-        detail = f"McNemar exact, {t.discordant[0]} gained : {t.discordant[1]} lost of {units}"
+        # Better and worse by the sweep's mode: a box dropped in fewer episodes is the gain of a min metric.
+        higher, lower = t.discordant
+        better, worse = (higher, lower) if summary.mode == "max" else (lower, higher)
+        detail = f"McNemar exact, {better} better : {worse} worse of {units}"
     else:
         detail = f"{t.test}, {units}"
     if math.isfinite(t.p_value):

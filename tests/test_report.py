@@ -441,14 +441,14 @@ def test_variants_meet_their_baseline_episode_by_episode_where_both_logged_episo
     episodes = {run_id: {"box_drops": list(enumerate(map(float, flags)))} for run_id, flags in drops.items()}
     summary = report.summarize(runs, "box_drops", "min", pairing=report.Pairing(("pets",)), episodes=episodes)
     paired = {g.variant: g.paired.test for g in summary.groups if g.paired}
-    # Episodes 0, 2 and 6 dropped under PETS alone, episode 3 under both: 0 gained, 3 lost, p = 2 / 2^3.
+    # Episodes 0, 2 and 6 dropped under PETS alone, episode 3 under both: better in 3 (fewer drops), worse in 0.
     assert paired["razer"].unit == "episode" and paired["razer"].pairs == 8
     assert paired["razer"].discordant == (0, 3) and paired["razer"].p_value == pytest.approx(0.25)
     assert paired["razer"].difference == pytest.approx(-3 / 8)
     # A run without per-episode values falls back to its seed.
     assert paired["unlogged"].unit == "seed" and paired["unlogged"].pairs == 1
     table = report.format_table(summary)
-    assert "-0.38 vs pets (McNemar exact, 0 gained : 3 lost of 8 episodes, p=0.25)" in table
+    assert "-0.38 vs pets (McNemar exact, 3 better : 0 worse of 8 episodes, p=0.25)" in table
     assert "vs pets (too few pairs to test, 1 seed)" in table
 
 
@@ -481,7 +481,7 @@ def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
     flags = {"full": [1, 1, 1, 0], "ablated": [0, 1, 0, 0]}
     by_seed = {variant: {seed: [flag] for seed, flag in enumerate(values)} for variant, values in flags.items()}
     table, rows = store_paired_success_sweep(tmp_path, "paired", by_seed, per_episode=False)
-    assert "-0.50 vs full (McNemar exact, 0 gained : 2 lost of 4 seeds, p=0.5)" in table
+    assert "-0.50 vs full (McNemar exact, 0 better : 2 worse of 4 seeds, p=0.5)" in table
     assert rows["ablated"]["paired_baseline"] == "full" and rows["ablated"]["paired_test"] == "McNemar exact"
     assert rows["ablated"]["paired_unit"] == "seed" and rows["full"]["paired_baseline"] == ""
 
@@ -490,7 +490,7 @@ def test_report_pairs_mpc_episodes_that_start_alike(tmp_path):
     """``icemlab report`` reads the per-episode metric of an mpc sweep with a baseline and pairs episodes."""
     flags = {"full": {0: [1, 1, 1, 0, 1, 1]}, "ablated": {0: [0, 1, 0, 0, 0, 0]}}
     table, rows = store_paired_success_sweep(tmp_path, "episodes", flags, per_episode=True)
-    assert "-0.67 vs full (McNemar exact, 0 gained : 4 lost of 6 episodes, p=0.12)" in table
+    assert "-0.67 vs full (McNemar exact, 0 better : 4 worse of 6 episodes, p=0.12)" in table
     assert rows["ablated"]["paired_unit"] == "episode" and rows["ablated"]["paired_pairs"] == "6"
 
 
