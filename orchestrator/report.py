@@ -318,7 +318,7 @@ def _per_episode(group: Group, metric: str, episodes: Histories | None) -> dict[
         return {}
     by_episode: dict[tuple[int, int], list[float]] = defaultdict(list)
     for trial in group.trials:
-        # A step logged twice (never, unless a run was resumed by hand) counts once, with its last value.
+        # An episode logged twice counts once, with its last value.
         history = dict(episodes.get(trial.run_id, {}).get(metric, []))
         if not history:
             return {}

@@ -229,17 +229,25 @@ def penalty_figure(summary: Any):
         if PENALTY_SETTING in group.setting:
             rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k != PENALTY_SETTING)
             lines[" ".join(filter(None, [group.task, _particles(group), rest]))].append(group)
+    points = {name: [(g.setting[PENALTY_SETTING], g) for g in members] for name, members in lines.items()}
+    return _group_lines_figure(points, "aleatoric penalty w_A (0: PETS)", summary.metric,
+                               "against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)")  # fmt: skip
+
+
+def _group_lines_figure(lines: dict[str, list[tuple[float, Any]]], xlabel: str, metric: str, title: str):
+    """One line per name through its (x, group) points: the groups' means with their 95% intervals as bars
+    (Wilson over episodes for rates, whose axis then spans 0-1)."""
     figure, axis = plt.subplots(figsize=(6, 4))
-    for name, members in sorted(lines.items()):
-        members.sort(key=lambda g: g.setting[PENALTY_SETTING])
-        axis.errorbar([g.setting[PENALTY_SETTING] for g in members], [g.mean for g in members],
-                      yerr=statistics.error_bars([g.interval for g in members]), marker="o", capsize=3,
+    for name, points in sorted(lines.items()):
+        points = sorted(points, key=lambda point: point[0])
+        axis.errorbar([x for x, _ in points], [g.mean for _, g in points],
+                      yerr=statistics.error_bars([g.interval for _, g in points]), marker="o", capsize=3,
                       label=name)  # fmt: skip
-    axis.set_xlabel("aleatoric penalty w_A (0: PETS)")
-    axis.set_ylabel(summary.metric.replace("_", " "))
-    if all(g.successes is not None for g in summary.groups):
+    axis.set_xlabel(xlabel)
+    axis.set_ylabel(metric.replace("_", " "))
+    if all(g.successes is not None for points in lines.values() for _, g in points):
         axis.set_ylim(-0.02, 1.02)
-    return _finished(figure, axis, "against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)")
+    return _finished(figure, axis, title)
 
 
 def _task_option(group: Any, option: str) -> float | None:
@@ -279,17 +287,8 @@ def noise_figure(summary: Any):
         rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k not in (PENALTY_SETTING, option))
         name = "PETS" if weight == 0 else f"RAZER w_A={weight}"
         lines[" ".join(filter(None, [name, _particles(group), rest]))].append((x, group))
-    figure, axis = plt.subplots(figsize=(6, 4))
-    for name, points in sorted(lines.items()):
-        points.sort(key=lambda point: point[0])
-        axis.errorbar([x for x, _ in points], [g.mean for _, g in points],
-                      yerr=statistics.error_bars([g.interval for _, g in points]), marker="o", capsize=3,
-                      label=name)  # fmt: skip
-    axis.set_xlabel(option.removeprefix("task_options."))
-    axis.set_ylabel(summary.metric.replace("_", " "))
-    if all(g.successes is not None for g in groups):
-        axis.set_ylim(-0.02, 1.02)
-    return _finished(figure, axis, "against the noise (thesis Fig. 19b: RAZER's drop rate < 0.2)")
+    return _group_lines_figure(lines, option.removeprefix("task_options."), summary.metric,
+                               "against the noise (thesis Fig. 19b: RAZER's drop rate < 0.2)")  # fmt: skip
 
 
 def write_files(summary: Any, directory: Path) -> list[Path]:
