@@ -428,6 +428,41 @@ def test_a_new_standardisation_keeps_what_the_carried_over_network_computes(keep
     assert np.allclose(refitted["raw"], trained.raw(probe), atol=1e-4) == keep_function
 
 
+@pytest.mark.parametrize("carry_moments", [True, False])
+def test_a_rescaled_standardisation_carries_adams_moments_into_the_new_coordinates(carry_moments, monkeypatch):
+    """The spread of the inputs doubles: the folded first layer's gradient halves, and Adam's moments scale with it,
+    so they stand to the gradients they will meet as they stood to the old ones; left alone, they do not."""
+    import torch
+
+    import workers.policy.training as training
+
+    if not carry_moments:
+        monkeypatch.setattr(training, "rescale_inputs_of", lambda weight, scale, optimiser: weight.data.mul_(scale))
+    rng = np.random.default_rng(5)
+    observations = rng.normal(size=(400, 4)) + [1.0, -1.0, 0.0, 2.0]
+    actions = np.tanh(observations[:, :2] * [0.7, -0.4])
+    trainer = PolicyTrainer(3, {"gradient_steps": 50, "batch_size": 64}, obs_dim=4, action_dim=2)
+    trainer.train({"observations": observations, "actions": actions})
+    first = trainer.linears[0]
+    target = torch.as_tensor(actions, dtype=torch.float32)
+
+    def gradient_and_moments():
+        trainer.model.zero_grad()
+        torch.mean((trainer.model(trainer._inputs(observations)) - target) ** 2).backward()
+        state = trainer.optimiser.state[first.weight]
+        return first.weight.grad.clone(), state["exp_avg"].clone(), state["exp_avg_sq"].clone()
+
+    gradient, first_moment, second_moment = gradient_and_moments()
+    scale = np.array([2.0, 1.0, 1.0, 2.0])
+    trainer._restandardise_first_layer(trainer.mean, trainer.std * scale)
+    trainer.std = trainer.std * scale
+    new_gradient, new_first_moment, new_second_moment = gradient_and_moments()
+    torch.testing.assert_close(new_gradient, gradient / torch.as_tensor(scale, dtype=torch.float32))
+    carried = torch.allclose(new_first_moment / new_gradient, first_moment / gradient, rtol=1e-4)
+    assert carried == carry_moments
+    assert torch.allclose(new_second_moment / new_gradient**2, second_moment / gradient**2, rtol=1e-4) == carried
+
+
 def test_restoring_a_trainer_to_before_its_first_training_forgets_the_training():
     """A round 0 re-run after a restore gets the random initialisation again, not the weights trained since."""
     rng = np.random.default_rng(2)

@@ -176,6 +176,38 @@ def test_a_warm_started_model_keeps_its_predictions_when_the_normalisation_moves
     assert same == keep_function
 
 
+@pytest.mark.parametrize("carry_moments", [True, False])
+def test_a_rescaled_normalisation_carries_adams_moments_into_the_new_coordinates(carry_moments, monkeypatch):
+    """Inputs spread twice as wide about the same mean: every member's folded first layer gets half the gradient,
+    and Adam's moments scale with it (carried, they stand to the new gradients as to the old ones)."""
+    import workers.dynamics.ensemble as ensemble
+
+    if not carry_moments:
+        monkeypatch.setattr(ensemble, "rescale_inputs_of", lambda weight, scale, optimiser: weight.data.mul_(scale))
+    model = tiny_model(epochs=3, grad_norm=None)
+    data = toy_data(300, noise=0.05)
+    model.train(data)
+    inputs, targets = model._inputs_targets(data)
+    mean = inputs.mean(dim=0)
+    wider = mean + (inputs - mean) * 2.0
+    weight = model.net.weights[0]
+
+    def gradient_and_moments():
+        model.optimizer.zero_grad(set_to_none=True)
+        predicted, logvar = model.net(wider.expand(model.ensemble_size, -1, -1))
+        gaussian_nll(predicted, logvar, targets).backward()
+        state = model.optimizer.state[weight]
+        return weight.grad.clone(), state["exp_avg"].clone(), state["exp_avg_sq"].clone()
+
+    gradient, first_moment, second_moment = gradient_and_moments()
+    model.fit_normalizer(Transitions(wider[:, :3].numpy(), wider[:, 3:].numpy(), data.next_observations), True)
+    new_gradient, new_first_moment, new_second_moment = gradient_and_moments()
+    torch.testing.assert_close(new_gradient, gradient / 2, rtol=1e-3, atol=1e-7)
+    carried = torch.allclose(new_first_moment / new_gradient, first_moment / gradient, rtol=1e-3)
+    assert carried == carry_moments
+    assert torch.allclose(new_second_moment / new_gradient**2, second_moment / gradient**2, rtol=1e-3) == carried
+
+
 def test_gradient_clipping_is_per_member():
     model = tiny_model(grad_norm=2.0)
     scales = torch.tensor([0.1, 1.0, 10.0, 100.0, 0.0])

@@ -48,6 +48,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleConfig  # noqa: F401 (re-exported)
+from workers.reparameterise import rescale_inputs_of
 
 CHECKPOINT_FORMAT = 2
 """2: the state bounds of the propagation clamp (EnsembleConfig.state_margin) are part of the weights."""
@@ -234,7 +235,7 @@ class DynamicsEnsemble:
 
         With ``keep_function`` the change is folded into every member's first layer: with z = (x - m) / s and
         z' = (x - m') / s', z W + b = z' (diag(s'/s) W) + (b + ((m' - m) / s) W), so each member's output for
-        every raw input stays the same.
+        every raw input stays the same; Adam's moments follow the rescale (workers/reparameterise.py).
         """
         inputs, _ = self._inputs_targets(data)
         std = inputs.std(dim=0, unbiased=False)
@@ -246,7 +247,7 @@ class DynamicsEnsemble:
             with torch.no_grad():
                 shift = (mean - net.input_mean) / net.input_std
                 net.biases[0].add_(torch.einsum("i,kio->ko", shift, net.weights[0]).unsqueeze(1))
-                net.weights[0].mul_((std / net.input_std).view(1, -1, 1))
+            rescale_inputs_of(net.weights[0], (std / net.input_std).view(1, -1, 1), self.optimizer)
         self.net.input_mean.copy_(mean)
         self.net.input_std.copy_(std)
         if self.config.state_margin is not None:

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from workers.checkpoint import arrays_to_tensors, tensors_to_arrays
 from workers.policy.network import PolicyWeights, layer_sizes, standardisation
+from workers.reparameterise import rescale_inputs_of
 
 
 class PolicySettings(BaseModel):
@@ -153,14 +154,15 @@ class PolicyTrainer:
     def _restandardise_first_layer(self, mean: np.ndarray, std: np.ndarray) -> None:
         """Fold a change of input standardisation into the first layer: with z = (x - m) / s and z' = (x - m') / s',
         W z + b = (W diag(s'/s)) z' + (b + W (m' - m) / s), so the network's output for every raw x is unchanged
-        (up to the clipping of standardised inputs at +-INPUT_CLIP)."""
+        (up to the clipping of standardised inputs at +-INPUT_CLIP); Adam's moments follow the rescale
+        (workers/reparameterise.py)."""
         import torch
 
         first = self.linears[0]
         with torch.no_grad():
             shift = torch.as_tensor((mean - self.mean) / self.std, dtype=first.weight.dtype)
             first.bias.add_(first.weight @ shift)
-            first.weight.mul_(torch.as_tensor(std / self.std, dtype=first.weight.dtype))
+        rescale_inputs_of(first.weight, torch.as_tensor(std / self.std, dtype=first.weight.dtype), self.optimiser)
 
     def _inputs(self, observations: np.ndarray):
         import torch
