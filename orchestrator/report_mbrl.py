@@ -139,26 +139,37 @@ def _finished(figure, axis, title: str):
     return figure
 
 
-def _swept_task_option(summary: Any) -> str | None:
-    """The numeric task option the configurations differ in (e.g. task_options.wind_max), if one."""
-    options = defaultdict(set)
-    for group in summary.groups:
-        for key, value in group.setting.items():
-            if key.startswith("task_options.") and isinstance(value, int | float) and not isinstance(value, bool):
-                options[key].add(value)
-    swept = [key for key, values in options.items() if len(values) > 1]
+def _task_option(group: Any, option: str) -> float | None:
+    """The value of a task option all of a group's trials ran with, from their logged settings (a group that ran
+    the option's default has no swept setting that says it); None when it varies or is not logged."""
+    values = {trial.params.get(option) for trial in group.trials}
+    if len(values) != 1 or None in values:
+        return None
+    try:
+        return float(values.pop())
+    except ValueError:
+        return None
+
+
+def _logged_task_option(summary: Any) -> str | None:
+    """The numeric task option the groups ran with different values of (the noise strength), if exactly one."""
+    keys = {key for g in summary.groups for t in g.trials for key in t.params if key.startswith("task_options.")}
+    swept = [key for key in sorted(keys) if len({_task_option(g, key) for g in summary.groups} - {None}) > 1]
     return swept[0] if len(swept) == 1 else None
 
 
 def drop_rate_figure(summary: Any, option: str | None = None):
-    """Fig. 19b: failure rate of each frozen row against a swept task option; None when nothing fits."""
-    option = option or _swept_task_option(summary)
+    """Fig. 19b: failure rate of each frozen row against a task option the configurations ran with different
+    values of (read from the trials' logged settings, as :func:`noise_figure` reads it: a configuration that ran
+    the option's default is placed too); None when nothing fits."""
+    option = option or _logged_task_option(summary)
     if option is None:
         return None
     lines: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
     key_used = None
     for group in summary.groups:
-        if option not in group.setting:
+        x = _task_option(group, option)
+        if x is None:
             continue
         for point in frozen_points(group.trials):
             key = next((k for k in FAILURE_KEYS if k in point.values), None)
@@ -167,9 +178,7 @@ def drop_rate_figure(summary: Any, option: str | None = None):
             key_used = key_used or key
             mean, sem, _ = point.values[key]
             rest = " ".join(f"{k}={v}" for k, v in group.setting.items() if k != option)
-            lines[" ".join(filter(None, [point.row, group.variant or "", rest]))].append(
-                (group.setting[option], mean, sem)
-            )
+            lines[" ".join(filter(None, [point.row, group.variant or "", rest]))].append((x, mean, sem))
     if not lines:
         return None
     figure, axis = plt.subplots(figsize=(6, 4))
@@ -248,25 +257,6 @@ def _group_lines_figure(lines: dict[str, list[tuple[float, Any]]], xlabel: str, 
     if all(g.successes is not None for points in lines.values() for _, g in points):
         axis.set_ylim(-0.02, 1.02)
     return _finished(figure, axis, title)
-
-
-def _task_option(group: Any, option: str) -> float | None:
-    """The value of a task option all of a group's trials ran with, from their logged settings (a group that ran
-    the option's default has no swept setting that says it); None when it varies or is not logged."""
-    values = {trial.params.get(option) for trial in group.trials}
-    if len(values) != 1 or None in values:
-        return None
-    try:
-        return float(values.pop())
-    except ValueError:
-        return None
-
-
-def _logged_task_option(summary: Any) -> str | None:
-    """The numeric task option the groups ran with different values of (the noise strength), if exactly one."""
-    keys = {key for g in summary.groups for t in g.trials for key in t.params if key.startswith("task_options.")}
-    swept = [key for key in sorted(keys) if len({_task_option(g, key) for g in summary.groups} - {None}) > 1]
-    return swept[0] if len(swept) == 1 else None
 
 
 def noise_figure(summary: Any):

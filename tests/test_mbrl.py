@@ -411,8 +411,9 @@ def test_task_options_are_validated_like_every_task(tmp_path, capsys):
 
 # ------------------------------------------------------------------ reports
 class Run:
-    def __init__(self, values):
+    def __init__(self, values, params=None):
         self.values = values
+        self.params = params or {}
 
 
 def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_noise(tmp_path):
@@ -420,12 +421,12 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
     from orchestrator.report import Group, Summary
     from orchestrator.statistics import Interval
 
-    def trial(pets, razer_a, razer_b, coverage):
+    def trial(pets, razer_a, razer_b, coverage, wind):
         values = {"final_coverage": coverage}
         for row, success, weight in (("pets", pets, 0.0), ("razer_wA_0.1", razer_a, 0.1), ("razer_wA_1", razer_b, 1.0)):
             values |= {f"frozen/{row}/success_rate": success, f"frozen/{row}/aleatoric_weight": weight,
                        f"frozen/{row}/falls_rate": 1 - success, f"frozen/{row}/pets": float(row == "pets")}  # fmt: skip
-        return Run(values)
+        return Run(values, {"task_options.wind_max": str(wind)})
 
     nothing = Interval(0.0, 0.0, 0.0)
     groups = [
@@ -434,7 +435,7 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
             "mbrl",
             {},
             None,
-            {"task_options.wind_max": wind},
+            setting,
             trials,
             0.0,
             0.0,
@@ -444,9 +445,10 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
             None,
             None,
         )  # fmt: skip
-        for wind, trials in (
-            (10, [trial(0.6, 0.8, 0.9, 0.1), trial(0.5, 0.9, 1.0, 0.2)]),
-            (30, [trial(0.2, 0.7, 0.9, 0.1)]),
+        for setting, trials in (
+            ({"task_options.wind_max": 10}, [trial(0.6, 0.8, 0.9, 0.1, 10), trial(0.5, 0.9, 1.0, 0.2, 10)]),
+            ({"task_options.wind_max": 30}, [trial(0.2, 0.7, 0.9, 0.1, 30)]),
+            ({}, [trial(0.4, 0.8, 0.9, 0.1, 20.0)]),  # ran the default wind: placed by its logged setting
         )
     ]
     summary = Summary(groups, "frozen_success", "frozen_best_success_rate", "max", 0)
@@ -461,10 +463,12 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
     success = report_mbrl.success_figure(summary)
     (line, *_) = success.axes[0].lines
     assert list(line.get_xdata()) == [0.1, 1.0]
-    assert report_mbrl._swept_task_option(summary) == "task_options.wind_max"
     failures = report_mbrl.drop_rate_figure(summary)
     labels = sorted(text.get_text() for text in failures.axes[0].get_legend().get_texts())
     assert labels == ["pets", "razer_wA_0.1", "razer_wA_1"]
+    pets = next(bars.lines[0] for bars in failures.axes[0].containers if bars.get_label() == "pets")
+    assert list(pets.get_xdata()) == [10, 20, 30]
+    assert list(pets.get_ydata()) == pytest.approx([0.45, 0.6, 0.8])
     written = report_mbrl.write_files(summary, tmp_path)
     assert [p.name for p in written] == ["frozen_success.png", "failure_rate.png", "coverage.png"]
 
