@@ -370,6 +370,8 @@ def _comparison_text(group: Group) -> str:
     if c.runs_needed:
         unit = "episode" if group.successes else "run"
         text += f"; ~{c.runs_needed} {unit}{'' if c.runs_needed == 1 else 's'} to settle"
+    elif not c.attainable:
+        text += f"; no number of runs settles it against {group.reference.runs} published runs"
     return text
 
 
@@ -432,7 +434,7 @@ def format_table(summary: Summary) -> str:
         notes.append(f"no single best by {metric}: {len(summary.tied)} configurations tie at {value}")
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:
-        notes.append("published: " + "; ".join(sources) + "; tests one-sided in the direction of the difference, 5%")
+        notes.append("published: " + "; ".join(sources) + "; tests two-sided, 5%")
     if summary.baselines:
         notes.append("vs baseline: mean difference over the seeds both ran, or over their episodes where each "
                      "starts alike in both; tests two-sided")
@@ -471,7 +473,8 @@ def to_csv(summary: Summary) -> str:
              cell(g.value("mean_planning_seconds_per_step")),
              cell(r.value if r else None), cell(r.spread if r else None), r.runs if r and r.runs else "",
              r.source if r else "", c.verdict if c else "", c.test if c else "", cell(c.p_value if c else None),
-             c.runs_needed if c and c.runs_needed else "", int(index == summary.best),
+             c.runs_needed if c and c.runs_needed else ("unattainable" if c and not c.attainable else ""),
+             int(index == summary.best),
              *_paired_cells(g, cell)]
         )  # fmt: skip
     return buffer.getvalue()

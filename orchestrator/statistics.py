@@ -15,15 +15,20 @@ effects.
 * Verdicts against a reference: an exact binomial test of the measured
   successes against a published success rate; for returns Welch's t-test
   against the published mean, spread and run count (a one-sample t-test when
-  the reference gives no spread). Tests are one-sided in the direction of the
-  observed difference, at the 5% level: ``below`` or ``above`` when the
-  difference is significant, ``consistent`` when it is not.
+  the reference gives no spread, or one run). Tests are two-sided at the 5%
+  level: ``below`` or ``above`` (the side of the observed difference) when
+  the difference is significant, ``consistent`` when it is not. A one-sided
+  test in the direction the data happen to point would call a true null
+  ``below`` or ``above`` in about 10% of comparisons, not 5%.
 * Variants against a baseline on the same seeds (a sweep's ``baseline``):
   McNemar's exact test for one success flag per seed, the paired t-test
   otherwise; two-sided.
 * Runs to settle: for a comparison that is not significant, how many runs
-  (episodes, for rates) a one-sided test at 5% needs to detect the observed
-  difference with 80% power.
+  (episodes, for rates) the same two-sided test at 5% needs to detect the
+  observed difference with 80% power. Against a published mean with a spread
+  over a few runs, the published runs' own uncertainty stays however many
+  runs are added; where no number of runs reaches 80% power, none is named
+  (``Comparison.attainable`` is false).
 """
 
 from __future__ import annotations
@@ -66,10 +71,13 @@ class Comparison(NamedTuple):
     test: str
     """The test that decided it."""
     p_value: float
-    """One-sided, in the direction of the observed difference."""
+    """Two-sided."""
     runs_needed: int | None
     """Runs (episodes for rates) that would detect the observed difference at 5% with 80% power; None once
-    the difference is significant or when there is none."""
+    the difference is significant, when there is none, or when no number of runs would (``attainable``)."""
+    attainable: bool = True
+    """False when even infinitely many runs would not detect the difference with 80% power against the
+    published runs (their own spread over their few runs bounds the test)."""
 
 
 MIN_BOOTSTRAP_RUNS = 3
@@ -115,7 +123,7 @@ def rate_interval(successes: int, trials: int) -> Interval:
 
 
 def _verdict(p_value: float, below: bool) -> str:
-    if p_value >= ALPHA:
+    if not p_value < ALPHA:  # also an undefined (nan) p-value: no verdict without a test
         return "consistent"
     return "below" if below else "above"
 
@@ -123,10 +131,8 @@ def _verdict(p_value: float, below: bool) -> str:
 def compare_rate(successes: int, trials: int, published: float) -> Comparison:
     """Exact binomial test of ``successes`` out of ``trials`` against a published success rate."""
     observed = successes / trials
-    below = observed < published
-    alternative = "less" if below else "greater"
-    p_value = float(stats.binomtest(successes, trials, published, alternative=alternative).pvalue)
-    verdict = _verdict(p_value, below)
+    p_value = float(stats.binomtest(successes, trials, published).pvalue)
+    verdict = _verdict(p_value, observed < published)
     needed = None
     if verdict == "consistent" and observed != published:
         needed = _episodes_to_detect(observed, published)
@@ -134,7 +140,7 @@ def compare_rate(successes: int, trials: int, published: float) -> Comparison:
 
 
 def _episodes_to_detect(observed: float, published: float) -> int | None:
-    """One-sample test of a proportion (Cohen's h, normal approximation) at 5%, one-sided, 80% power.
+    """One-sample test of a proportion (Cohen's h, normal approximation) at 5%, two-sided, 80% power.
 
     n = ((z_(1 - alpha) + z_power) / h)^2 in closed form: a numerical power solver fails to converge for
     effects so large that a single episode would do (0 of 1 against 0.9).
@@ -142,40 +148,80 @@ def _episodes_to_detect(observed: float, published: float) -> int | None:
     effect = abs(2 * math.asin(math.sqrt(observed)) - 2 * math.asin(math.sqrt(published)))
     if effect == 0:
         return None
-    z = stats.norm.ppf(1 - ALPHA) + stats.norm.ppf(POWER)
+    z = stats.norm.ppf(1 - ALPHA / 2) + stats.norm.ppf(POWER)
     return max(1, int(math.ceil((z / effect) ** 2)))
 
 
 def compare_mean(values: np.ndarray, published: float, spread: float | None, spread_kind: str | None,
                  runs: int | None) -> Comparison:  # fmt: skip
-    """Welch's t-test of the runs' values against a published mean (one-sample t-test without a spread)."""
+    """Welch's t-test of the runs' values against a published mean, spread and run count; a one-sample t-test
+    when the reference gives no spread or a single run (its mean taken as exact)."""
     values = np.asarray(values, dtype=float)
     n = len(values)
-    if n < 2 or np.std(values, ddof=1) == 0 and spread is None:
-        return Comparison("consistent", "too few runs to test", math.nan, None)
-    mean, std = float(values.mean()), float(np.std(values, ddof=1))
-    below = mean < published
-    alternative = "less" if below else "greater"
-    if spread is not None and runs:
+    std = float(np.std(values, ddof=1)) if n > 1 else 0.0
+    published_std = None
+    if spread is not None and runs is not None and runs >= 2:
         published_std = spread * math.sqrt(runs) if spread_kind == "sem" else spread
-        result = stats.ttest_ind_from_stats(mean, std, n, published, published_std, runs, equal_var=False,
-                                            alternative=alternative)  # fmt: skip
+    welch = bool(published_std)
+    if n < 2 or (std == 0 and not welch):
+        return Comparison("consistent", "too few runs to test", math.nan, None)
+    mean = float(values.mean())
+    if welch:
+        result = stats.ttest_ind_from_stats(mean, std, n, published, published_std, runs, equal_var=False)
         test = "Welch t-test"
-        scale = math.sqrt((std**2 + published_std**2) / 2) or 1.0
     else:
-        result = stats.ttest_1samp(values, published, alternative=alternative)
+        result = stats.ttest_1samp(values, published)
         test = "one-sample t-test"
-        scale = std or 1.0
     p_value = float(result.pvalue)
-    verdict = _verdict(p_value, below)
-    needed = None
-    if verdict == "consistent" and mean != published:
-        from statsmodels.stats.power import TTestPower
+    verdict = _verdict(p_value, mean < published)
+    if verdict != "consistent" or mean == published:
+        return Comparison(verdict, test, p_value, None)
+    if welch:
+        needed = _runs_to_detect_welch(abs(mean - published), std, published_std, runs)
+        return Comparison(verdict, test, p_value, needed, attainable=needed is not None)
+    from statsmodels.stats.power import TTestPower
 
-        effect = abs(mean - published) / scale
-        needed = int(math.ceil(TTestPower().solve_power(effect_size=effect, alpha=ALPHA, power=POWER,
-                                                        alternative="larger")))  # fmt: skip
+    effect = abs(mean - published) / std
+    needed = int(math.ceil(TTestPower().solve_power(effect_size=effect, alpha=ALPHA, power=POWER,
+                                                    alternative="two-sided")))  # fmt: skip
     return Comparison(verdict, test, p_value, needed)
+
+
+MAX_RUNS_TO_SETTLE = 10**6
+"""Beyond this many runs the question is called not settleable by runs."""
+
+
+def _welch_power(difference: float, std: float, n: int, published_std: float, runs: int) -> float:
+    """Power of the two-sided Welch t-test at 5% for a true ``difference``, with ``n`` own runs of spread
+    ``std`` against ``runs`` published runs of spread ``published_std`` (noncentral t, Welch-Satterthwaite df)."""
+    own, theirs = std**2 / n, published_std**2 / runs
+    error = math.sqrt(own + theirs)
+    df = (own + theirs) ** 2 / (own**2 / max(n - 1, 1) + theirs**2 / (runs - 1))
+    critical = stats.t.ppf(1 - ALPHA / 2, df)
+    shift = difference / error
+    return float(stats.nct.sf(critical, df, shift) + stats.nct.cdf(-critical, df, shift))
+
+
+def _runs_to_detect_welch(difference: float, std: float, published_std: float, runs: int) -> int | None:
+    """Fewest own runs at which the Welch test reaches 80% power with the published runs fixed; None when no
+    number does (the limit of infinitely many own runs is a one-sample test against the published mean's
+    standard error with runs - 1 degrees of freedom)."""
+    limit = stats.t.ppf(1 - ALPHA / 2, runs - 1)
+    shift = difference / (published_std / math.sqrt(runs))
+    if stats.nct.sf(limit, runs - 1, shift) + stats.nct.cdf(-limit, runs - 1, shift) < POWER:
+        return None
+    low, high = 2, 2
+    while _welch_power(difference, std, high, published_std, runs) < POWER:
+        low, high = high, high * 2
+        if high > MAX_RUNS_TO_SETTLE:
+            return None
+    while low < high:  # the fewest runs with enough power (power grows with the runs)
+        middle = (low + high) // 2
+        if _welch_power(difference, std, middle, published_std, runs) >= POWER:
+            high = middle
+        else:
+            low = middle + 1
+    return high
 
 
 class PairedTest(NamedTuple):

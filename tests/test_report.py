@@ -21,14 +21,15 @@ from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
 def test_worked_example_18_of_20_against_096_is_consistent():
     comparison = statistics.compare_rate(18, 20, 0.96)
     assert comparison.verdict == "consistent" and comparison.test == "exact binomial"
-    assert comparison.p_value == pytest.approx(0.19, abs=0.005)  # one-sided exact binomial
+    assert comparison.p_value == pytest.approx(0.19, abs=0.005)  # two-sided exact binomial
     # Telling 0.90 from 0.96 at 5% with 80% power takes on the order of a hundred episodes.
     assert 80 <= comparison.runs_needed <= 250
 
 
-@pytest.mark.parametrize("successes, trials, published, needed", [(0, 1, 0.9, 1), (1, 1, 0.1, 1), (4, 5, 0.9, 77)])
+@pytest.mark.parametrize("successes, trials, published, needed", [(0, 1, 0.9, 2), (1, 1, 0.1, 2), (4, 5, 0.9, 98)])
 def test_runs_needed_for_few_episodes_and_large_effects(successes, trials, published, needed):
-    """0 of 1 against 0.9 is not significant yet; one more episode would be (Cohen's h 2.5), not a crash."""
+    """0 of 1 against 0.9 is not significant yet; two episodes would be (Cohen's h 2.5, two-sided at 5% with 80%
+    power: ((1.96 + 0.84) / 2.5)^2 = 1.26), not a crash."""
     comparison = statistics.compare_rate(successes, trials, published)
     assert comparison.verdict == "consistent" and comparison.runs_needed == needed
 
@@ -37,6 +38,51 @@ def test_a_clearly_lower_rate_is_below_and_needs_no_more_runs():
     comparison = statistics.compare_rate(5, 40, 0.81)
     assert comparison.verdict == "below" and comparison.p_value < 1e-6 and comparison.runs_needed is None
     assert statistics.compare_rate(40, 40, 0.5).verdict == "above"
+
+
+def test_a_true_published_rate_is_called_below_or_above_in_at_most_5_percent_of_comparisons():
+    """The verdict's side comes from the data, so the test is two-sided: a one-sided test in the direction the
+    data happen to point would call about 9% of these exact-null draws below or above."""
+    draws = np.random.default_rng(0).binomial(100, 0.5, size=2000)
+    verdicts = [statistics.compare_rate(int(k), 100, 0.5).verdict for k in draws]
+    assert np.mean([v != "consistent" for v in verdicts]) < 0.065
+    assert statistics.compare_rate(73, 100, 0.81).verdict == "consistent"  # one-sided p 0.032, two-sided 0.055
+
+
+def test_runs_to_settle_against_a_few_published_runs_reach_80_percent_power_or_are_not_named():
+    """Against 50 published runs more own runs settle a 100-point gap (and simulated Welch tests at that count
+    detect it in about 80% of cases); against 5 published runs with a spread as large as the gap, no number of
+    own runs does, and the report says so instead of naming one."""
+    from scipy import stats
+
+    spread = 167.0
+    own = 5336 + spread * np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) / np.std([-1.0, -0.5, 0.0, 0.5, 1.0], ddof=1)
+    comparison = statistics.compare_mean(own, 5236, spread, "std", 50)
+    assert comparison.verdict == "consistent" and comparison.attainable
+    needed = comparison.runs_needed
+    rng = np.random.default_rng(1)
+    detected = [
+        stats.ttest_ind(rng.normal(5336, spread, needed), rng.normal(5236, spread, 50), equal_var=False).pvalue < 0.05
+        for _ in range(1000)
+    ]
+    assert 0.75 <= np.mean(detected) <= 0.87
+    few = statistics.compare_mean(np.array([9.5, 10.0, 10.5, 11.0, 11.5]), 10.0, 1.0, "std", 5)
+    assert few.verdict == "consistent" and few.runs_needed is None and not few.attainable
+    reference = Reference(task="halfcheetah_running", metric="episode_return", value=10.0, spread=1.0,
+                          spread_kind="std", runs=5, source="test")  # fmt: skip
+    group = report.Group("halfcheetah_running", "mpc", {}, None, {}, [], 10.5, 0.0, statistics.Interval(10.5, 0, 0),
+                         None, None, reference, few)  # fmt: skip
+    assert "no number of runs settles it against 5 published runs" in report._comparison_text(group)
+
+
+def test_a_reference_of_one_run_or_constant_runs_are_tested_only_where_a_test_is_defined():
+    """One published run has no spread to test against: its mean is taken as exact (a one-sample test), not a nan
+    p-value turned into a verdict; constant own runs against a mean without a spread are not tested."""
+    single = statistics.compare_mean(np.array([9.0, 10.0, 11.0, 12.0]), 8.0, 1.0, "std", 1)
+    assert single.test == "one-sample t-test" and math.isfinite(single.p_value)
+    constant = statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", None)
+    assert constant.test == "too few runs to test" and constant.verdict == "consistent"
+    assert statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", 10).test == "Welch t-test"
 
 
 def test_wilson_interval_and_iqm():
