@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 EXIT_BAD_INPUT = 2
@@ -326,30 +327,40 @@ def _sweep_name(argument: str):
     return argument, argument, None
 
 
-PACE_TRIALS = 10
-"""A running sweep's time to go is told from the pace of its last this many finished trials."""
 PACE_ROUNDS = 5
 """A running trial's time to go is told from the pace of its last this many rounds."""
 
 
-def _trial_counts(sweep, tracker) -> str:
-    """'finished 41 of 200  running 2  failed 0  killed 0', and for a running sweep the time to go at its
-    recent pace."""
-    children = tracker.trial_runs(sweep.run_id)
+def _trial_counts(sweep, tracker, plan: set[str] | None = None) -> str:
+    """'finished 41 of 200  running 2  failed 0  killed 0', and for a running sweep the time to go at the pace
+    of its current session.
+
+    With ``plan`` (the trial keys of the sweep file) only those trials count: a resume with changed keys leaves
+    the earlier trials' runs under the same parent. The pace is the trials finished since the session began
+    (start or latest resume) over the time since: finish times bunch when trials started together, and a gap
+    between sessions is no part of the pace. A trial that failed before the session began is being retried and
+    counts as to go.
+    """
+    children = [c for c in tracker.trial_runs(sweep.run_id) if plan is None or c.trial_key in plan]
     counts = {s: sum(c.status == s for c in children) for s in ("FINISHED", "RUNNING", "FAILED", "KILLED")}
     parts = [f"{state.lower()} {count}" for state, count in counts.items()]
     if sweep.planned_trials is None:
         return "  ".join(parts)
     parts[0] += f" of {sweep.planned_trials}"
-    ends = sorted(c.end_time for c in children if c.status == "FINISHED" and c.end_time)[-PACE_TRIALS:]
-    remaining = sweep.planned_trials - counts["FINISHED"] - counts["FAILED"]
-    if sweep.status == "RUNNING" and remaining > 0 and len(ends) >= 3 and ends[-1] > ends[0]:
+    began = sweep.session_started
+    if sweep.status != "RUNNING" or began is None:
+        return "  ".join(parts)
+    in_session = [c for c in children if c.end_time and c.end_time >= began]
+    finished = sum(c.status == "FINISHED" for c in in_session)
+    failed = sum(c.status == "FAILED" for c in in_session)
+    remaining = sweep.planned_trials - counts["FINISHED"] - failed
+    elapsed = time.time() - began
+    if remaining > 0 and finished and elapsed > 0:
         from orchestrator.plan import duration_text
 
-        seconds_per_trial = (ends[-1] - ends[0]) / (len(ends) - 1)
         parts.append(
-            f"about {duration_text(remaining * seconds_per_trial)} to go at the pace of the last {len(ends)} "
-            "finished trials"
+            f"about {duration_text(remaining * elapsed / finished)} to go at this session's pace ({finished} "
+            f"finished in {duration_text(elapsed)})"
         )
     return "  ".join(parts)
 
@@ -364,12 +375,13 @@ def cmd_status(args) -> int:
         for sweep in sweeps:
             print(f"{sweep.name:24s} {sweep.status:9s} run {sweep.run_id}  {_trial_counts(sweep, tracker)}")
         return 0
-    name, experiment, _ = _sweep_name(args.sweep)
+    name, experiment, loaded = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name) if tracker else None
     if parent is None:
         print(f"sweep {name!r} has not run in {uri}")
         return 1
-    print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker)}")
+    plan = {trial.key for trial in loaded.trials} if loaded else None
+    print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker, plan)}")
     metric = _recorded_metric(_recorded_sweep(tracker, parent.run_id))
     for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
         shown = _trial_metric_text(tracker, child, metric[0] if metric else None)

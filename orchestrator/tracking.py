@@ -59,6 +59,8 @@ TAG_FAILED_TRIALS = "icemlab.failed_trials"
 TAG_INTERRUPTED = "icemlab.interrupted"
 TAG_PLANNED_TRIALS = "icemlab.planned_trials"
 """How many trials the sweep file defines (set when the sweep starts or resumes)."""
+TAG_SESSION_STARTED = "icemlab.session_started"
+"""When the sweep's current session (its start, or its latest resume) began, in seconds since the epoch."""
 TAG_OVERRIDE = "icemlab.override."
 """Prefix of the tags that hold a trial's swept values (JSON)."""
 TAG_VERSION = "version."
@@ -119,6 +121,15 @@ class SweepRun(NamedTuple):
         """Trials the sweep file defines; None for runs recorded before the count was."""
         value = self.tags.get(TAG_PLANNED_TRIALS)
         return int(value) if value and value.isdigit() else None
+
+    @property
+    def session_started(self) -> float | None:
+        """When the current session (start or latest resume) began, seconds since the epoch; None for runs
+        recorded before it was."""
+        try:
+            return float(self.tags[TAG_SESSION_STARTED])
+        except (KeyError, ValueError):
+            return None
 
 
 class TrialRun(NamedTuple):
@@ -289,6 +300,7 @@ class Tracker:
                 TAG_KIND: "sweep",
                 TAG_SWEEP: sweep_name,
                 TAG_SWEEP_HASH: file_hash,
+                TAG_SESSION_STARTED: f"{time.time():.3f}",
                 "icemlab.version": version,
                 **tags,
             },
@@ -301,6 +313,7 @@ class Tracker:
         self.client.update_run(run_id, status=RUNNING)
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)
         self.client.set_tag(run_id, TAG_PLANNED_TRIALS, str(planned_trials))
+        self.client.set_tag(run_id, TAG_SESSION_STARTED, f"{time.time():.3f}")
 
     def end_sweep(
         self,

@@ -15,7 +15,7 @@ from helpers import cli
 from orchestrator import report, statistics
 from orchestrator.references import THESIS, Reference, find, load_references
 from orchestrator.sweep import SweepError, load_sweep
-from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
+from orchestrator.tracking import FAILED, FINISHED, Tracker, default_tracking_uri
 
 
 def test_worked_example_18_of_20_against_096_is_consistent():
@@ -604,16 +604,35 @@ def test_report_of_a_sweep_without_a_finished_trial_points_to_status(tmp_path):
     assert not (tmp_path / "reports").exists()  # no empty table written
 
 
-def test_status_tells_a_running_sweeps_time_to_go_from_its_recent_pace(tmp_path):
+def test_status_tells_a_running_sweeps_time_to_go_at_its_sessions_pace(tmp_path):
+    """Four trials that started together finish seconds apart ten minutes into a session: the pace is four per ten
+    minutes, not one a second; a trial finished in an earlier session counts as done but not for the pace, one
+    that failed then is being retried (to go), and with the sweep file only its trials count."""
+    import time
+
+    from orchestrator.tracking import TAG_SESSION_STARTED
+
     tracker = Tracker(default_tracking_uri(tmp_path))
-    parent = tracker.start_sweep("paced", "paced", "hash", "name: paced\n", {}, "dev", planned_trials=10)
-    start = 1_700_000_000_000  # ms
-    for index in range(5):
-        run_id = tracker.start_trial(parent, f"t{index}", f"t{index}", {"seed": index}, {})
-        if index < 4:  # four trials finished a minute apart, one still runs
-            tracker.client.set_terminated(run_id, status=FINISHED, end_time=start + 60_000 * index)
-    status = cli("status", cwd=tmp_path).stdout
-    assert "finished 4 of 10  running 1  failed 0  killed 0" in status
-    assert "about 6 min 00 s to go at the pace of the last 4 finished trials" in status  # 6 left, 60 s apart
+    sweep = Path(__file__).resolve().parents[1] / "sweeps" / "quickstart.yaml"
+    keys = [trial.key for trial in load_sweep(sweep).trials]
+    parent = tracker.start_sweep("quickstart", "quickstart", "hash", sweep.read_text(), {}, "dev", planned_trials=4)
+    began = time.time() - 600
+    tracker.client.set_tag(parent, TAG_SESSION_STARTED, f"{began:.3f}")
+
+    def trial(key, status, ended):
+        run_id = tracker.start_trial(parent, key, key, {"seed": 0}, {})
+        tracker.client.set_terminated(run_id, status=status, end_time=int(ended * 1000))
+
+    for index in range(4):  # stale keys of an earlier plan, finished seconds apart in this session
+        trial(f"stale{index}", FINISHED, began + 590 + index)
+    trial(keys[0], FINISHED, began - 3600)  # finished in an earlier session
+    trial(keys[1], FAILED, began - 60)  # failed in an earlier session: retried now
+    trial(keys[2], FINISHED, began + 300)
+    everything = cli("status", cwd=tmp_path).stdout
+    assert "finished 6 of 4" in everything  # without the file nothing says which runs are stale
+    status = cli("status", str(sweep), cwd=tmp_path).stdout
+    assert "finished 2 of 4  running 0  failed 1  killed 0" in status
+    # 2 to go (the retried failure and the last trial) at 1 trial per 600 s of this session: about 20 minutes.
+    assert "about 20 min" in status and "to go at this session's pace (1 finished in 10 min" in status
     tracker.end_sweep(parent, "KILLED", {})
-    assert "to go" not in cli("status", "paced", cwd=tmp_path).stdout  # a stopped sweep is not on its way
+    assert "to go" not in cli("status", str(sweep), cwd=tmp_path).stdout  # a stopped sweep is not on its way

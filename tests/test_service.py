@@ -109,8 +109,11 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
 
     # Progress against the sweep's plan, recorded when it starts and again when it resumes.
     assert "finished 4 of 4  running 0  failed 0  killed 0" in cli("status", cwd=tmp_path).stdout
+    began = tracker.sweeps()[0].session_started
+    assert began is not None and began <= time.time()
     tracker.reopen_sweep(parent.run_id, "edited", planned_trials=6)
     assert "finished 4 of 6" in cli("status", str(sweep), cwd=tmp_path).stdout
+    assert tracker.sweeps()[0].session_started > began  # a resume starts the session `icemlab status` paces
 
 
 @pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
