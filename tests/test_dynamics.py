@@ -386,6 +386,27 @@ def test_sequence_cost_terms_and_total():
     )
 
 
+def test_without_an_epistemic_weight_no_mean_states_are_propagated_and_the_costs_stay_the_same():
+    """RAZER with w_A only: the mean states would feed Var_E alone, so they are not propagated (half the rows per
+    member with one particle per member), and every cost is what it is with mean propagation switched off."""
+    model = tiny_model()
+    actions = np.random.default_rng(1).uniform(-1, 1, (6, 4, 2))
+
+    def evaluate(**razer):
+        settings = RazerSettings(aleatoric_weight=2.0, **razer)
+        return EnsembleEvaluator(model, lambda s, a, s2: s2[:, 0], settings, particles=5, seed=3)
+
+    razer = evaluate(mean_propagation="per_member")
+    assert razer.propagate(np.zeros(3), actions).means is None
+    razer.reseed(3)
+    total, parts = razer.costs(np.zeros(3), actions)
+    reference_total, reference_parts = evaluate(mean_propagation="none").costs(np.zeros(3), actions)
+    np.testing.assert_array_equal(total, reference_total)
+    np.testing.assert_array_equal(parts["c_A"], reference_parts["c_A"])
+    assert "u_E" not in parts
+    assert evaluate(epistemic_weight=0.1).propagate(np.zeros(3), actions).means is not None
+
+
 def test_uncertainty_reductions():
     from workers.dynamics.costs import reduce_uncertainty
 

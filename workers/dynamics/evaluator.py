@@ -63,14 +63,20 @@ class EnsembleEvaluator:
         self.generator = torch.Generator().manual_seed(seed)
 
     def propagate(self, observation: np.ndarray, actions: np.ndarray) -> Propagation:
-        """The PETSUS propagation of the sequences (for inspection and tests)."""
+        """The PETSUS propagation of the sequences (for inspection and tests).
+
+        Mean states feed Var_E alone (eq. 24): at w_E = 0 they would change no cost (the particles' random draws
+        do not depend on them) and would double the rows every member evaluates, so they are propagated only when
+        w_E > 0; u_E is then not reported.
+        """
+        mean_propagation = self.settings.mean_propagation if self.settings.epistemic_weight > 0 else "none"
         with torch.no_grad():
             return petsus_propagate(
                 self.model,
                 torch.as_tensor(observation, dtype=torch.float32),
                 torch.as_tensor(actions, dtype=torch.float32),
                 self.particles,
-                self.settings.mean_propagation,
+                mean_propagation,
                 self.generator,
                 self.settings.epistemic_terms,
             )
@@ -86,7 +92,7 @@ class EnsembleEvaluator:
 
         Components, each (N,): ``c`` task cost (eq. 25), ``c_A`` aleatoric penalty (eq. 26),
         ``c_E`` epistemic bonus (eq. 27, <= 0), ``c_S`` safety penalty (eq. 35), ``u_A`` and
-        ``u_E`` the unweighted uncertainty sums (``u_E`` only with mean propagation), and
+        ``u_E`` the unweighted uncertainty sums (``u_E`` only with mean propagation and w_E > 0), and
         ``violation_steps``. ``total`` = c + c_A + c_E + c_S.
         """
         return terms_as_numpy(self.terms(observation, actions))

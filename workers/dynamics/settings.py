@@ -194,7 +194,8 @@ class RazerSettings(BaseModel):
     epistemic_weight: float = Field(0.0, ge=0)
     """w_E of the epistemic bonus (eq. 27); 0.05 for the BridgeMaze exploration run (section 5.4.2)."""
     mean_propagation: MeanPropagation = "per_member"
-    """Mean propagation of PETSUS: per_member, shared or none (PETS); see workers/dynamics/propagation.py."""
+    """Mean propagation of PETSUS: per_member, shared or none (PETS); see workers/dynamics/propagation.py. The mean
+    states feed Var_E alone, so the evaluator propagates them only when epistemic_weight > 0."""
     epistemic_terms: EpistemicTerms = "means_and_variances"
     """Var_E of eq. 24: ``means_and_variances``, the variance over members of their predicted means plus that of
     their predicted variances, as the equation is written; ``means``, the first term alone, the usual

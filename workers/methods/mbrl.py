@@ -152,7 +152,8 @@ class RazerCostSettings(_Settings):
     epistemic_weight: float = Field(0.0, ge=0)
     """w_E, the epistemic bonus weight (eq. 27); 0.05 for the BridgeMaze exploration run (section 5.4.2)."""
     mean_propagation: MeanPropagation = "per_member"
-    """PETSUS mean propagation: per_member (App. D.2.4), shared (eq. 24's s_bar) or none (PETS)."""
+    """PETSUS mean propagation: per_member (App. D.2.4), shared (eq. 24's s_bar) or none (PETS); used only where
+    epistemic_weight > 0 (the mean states feed Var_E alone)."""
     epistemic_terms: EpistemicTerms = "means_and_variances"
     """Var_E of eq. 24: the members' spread of predicted means plus that of predicted variances, as written, or of
     the ``means`` alone (the variances' spread is in squared units and dominates wherever a member's log-variance
@@ -222,7 +223,8 @@ class MbrlSettings(MethodSettings):
     planner: MbrlPlannerSettings = MbrlPlannerSettings()  # type: ignore[valid-type]
     """iCEM's settings (Tables 15/16 unless set)."""
     razer: RazerCostSettings = RazerCostSettings()
-    """The planning cost of the training iterations (PETS with all weights 0 and mean_propagation none)."""
+    """The planning cost of the training iterations (all weights 0, the default, plan as PETS: mean states are
+    propagated only for w_E > 0)."""
     particles: int = Field(5, ge=1)
     """PETSUS particles per action sequence (TS1); not in the thesis (PETS used 20); 5 = one per member of a
     5-ensemble keeps planning affordable on two cores."""
