@@ -490,13 +490,24 @@ def test_presets_follow_tables_13_and_14():
     assert (cheetah.weight_decay, cheetah.epochs, cheetah.min_logvar, cheetah.grad_norm) == (3e-5, 50, -6.0, None)
 
 
-def test_throughput_measurement_runs():
-    """Only that it measures; no figure is asserted (shared two-core machine)."""
+def test_throughput_measurement_runs_the_rows_it_counts(monkeypatch):
+    """No figure is asserted (shared two-core machine): it measures, and the evaluator it times runs as many rows
+    per model step as the dense side multiplies (particles and mean states)."""
+    from workers.dynamics.ensemble import DynamicsEnsemble
+
+    batches = set()
+    predict = DynamicsEnsemble.predict
+
+    def counting(self, inputs):
+        batches.add(inputs.shape[0] * inputs.shape[1])
+        return predict(self, inputs)
+
+    monkeypatch.setattr(DynamicsEnsemble, "predict", counting)
     report = measure_ensemble_throughput(
         EnsembleConfig.preset("small", hidden_size=16), 4, 2, sequences=8, particles=5, horizon=3, repeats=1
     )
     assert report.dense_flops_per_second > 0 and report.particle_steps_per_second > 0 and report.ratio > 0
-    assert report.rows_per_model_step == 5 * (8 + 8)
+    assert batches == {report.rows_per_model_step} == {5 * (8 + 8)}
 
 
 def test_throughput_measurement_alternates_and_keeps_each_sides_best(monkeypatch):
