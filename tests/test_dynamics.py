@@ -362,6 +362,17 @@ def test_moment_matched_violation_uses_the_particles_moments():
     assert torch.all(moment_matched_violation(particles.mean(1, keepdim=True), (box,)) == 0)  # one particle: no spread
 
 
+def test_the_moment_matched_spread_of_a_few_particles_is_the_unbiased_sample_variance():
+    """Five particles at -2 ... 2 have sample variance 2.5 (population variance 2): a ceiling at 2.5 is crossed
+    with probability 1 - Phi(2.5 / sqrt(2.5)) = 0.057, above a delta of 0.05, where the population variance
+    would read 0.039, below it."""
+    particles = torch.tensor([-2.0, -1.0, 0.0, 1.0, 2.0]).view(1, 5, 1, 1)
+    box = SafetyBox(dims=(0,), low=(2.5,), high=(None,))
+    probability = moment_matched_violation(particles, (box,)).item()
+    assert probability == pytest.approx(1 - torch.special.ndtr(torch.tensor(2.5 / math.sqrt(2.5))).item(), rel=1e-5)
+    assert probability > 0.05
+
+
 def test_sequence_cost_terms_and_total():
     model = tiny_model()
     box = SafetyBox(dims=(0,), low=(-100.0,), high=(100.0,))  # always violated

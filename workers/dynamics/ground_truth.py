@@ -12,7 +12,11 @@ The members are identical, so the epistemic variance is zero and there are no
 mean states; the aleatoric variance Var_A of a step is the spread of the
 particles' observations (population variance over the P particles) in the
 configured dimensions (by default the task's ``uncertainty_dims``: the box
-position on Noisy-FetchPickAndPlace). The cost terms are RAZER's
+position on Noisy-FetchPickAndPlace). A simulator has no one-step predicted
+variance (eq. 22's Sigma_k), so this is the spread the noise has built up by
+step t, not the spread one step adds: noise that scatters the particles early
+(a box dropped in some of them) counts again at every later step of the
+horizon, so a risk taken early weighs more than the same risk late. The cost terms are RAZER's
 (workers/dynamics/costs.py) with the task's own per-step planning costs as the
 particle costs; PETS is w_A = 0, the mean particle cost.
 
