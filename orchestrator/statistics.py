@@ -22,7 +22,8 @@ effects.
   ``below`` or ``above`` in about 10% of comparisons, not 5%.
 * Variants against a baseline on the same seeds (a sweep's ``baseline``):
   McNemar's exact test for one success flag per seed, the paired t-test
-  otherwise; two-sided.
+  otherwise (the sign test where every pair differs by the same amount);
+  two-sided.
 * Runs to settle: for a comparison that is not significant, how many runs
   (episodes, for rates) the same two-sided test at 5% needs to detect the
   observed difference with 80% power. Against a published mean with a spread
@@ -255,7 +256,12 @@ def compare_paired(values: np.ndarray, baseline: np.ndarray, unit: str = "seed")
         gained, lost = int(np.sum(differences > 0)), int(np.sum(differences < 0))
         p_value = float(stats.binomtest(gained, gained + lost, 0.5).pvalue) if gained + lost else 1.0
         return PairedTest(n, mean, "McNemar exact", p_value, (gained, lost), unit)
-    if n < 2 or np.ptp(differences) == 0:
-        test = "too few pairs to test" if n < 2 else "paired t-test undefined"
-        return PairedTest(n, mean, test, math.nan, unit=unit)
+    if n < 2:
+        return PairedTest(n, mean, "too few pairs to test", math.nan, unit=unit)
+    if np.ptp(differences) == 0:
+        # Every pair differs by the same amount: the t statistic is undefined, but the sign test is not (all n
+        # differences on one side, p = 2 / 2^n; none at all, p = 1).
+        higher = int(np.sum(differences > 0))
+        p_value = float(stats.binomtest(higher, n, 0.5).pvalue) if mean != 0 else 1.0
+        return PairedTest(n, mean, "sign test", p_value, unit=unit)
     return PairedTest(n, mean, "paired t-test", float(stats.ttest_rel(values, baseline).pvalue), unit=unit)

@@ -85,6 +85,14 @@ def test_a_reference_of_one_run_or_constant_runs_are_tested_only_where_a_test_is
     assert statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", 10).test == "Welch t-test"
 
 
+def test_pairs_that_all_differ_by_the_same_amount_get_the_sign_test():
+    """The t statistic of constant differences is undefined; five of five pairs higher is p = 2 / 32."""
+    shifted = statistics.compare_paired(np.array([3.0, 5.0, 2.0, 7.0, 4.0]), np.array([2.0, 4.0, 1.0, 6.0, 3.0]))
+    assert shifted.test == "sign test" and shifted.p_value == pytest.approx(0.0625)
+    same = statistics.compare_paired(np.array([3.0, 5.0]), np.array([3.0, 5.0]))
+    assert same.test == "sign test" and same.p_value == 1.0
+
+
 def test_wilson_interval_and_iqm():
     interval = statistics.rate_interval(18, 20)
     assert interval.estimate == 0.9 and 0.68 < interval.low < 0.72 and 0.97 < interval.high < 0.99
