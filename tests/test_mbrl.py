@@ -355,6 +355,20 @@ BAD_INPUT = {
 }
 
 
+def test_a_model_field_set_to_null_is_passed_on_and_an_unset_one_takes_the_preset(tmp_path):
+    """`state_margin: null` switches the state clamp off (the trainer's config carries None, also after the
+    trial is rebuilt from its record); a sweep that does not mention it keeps the default clamp."""
+    from orchestrator.sweep import TrialConfig, load_sweep
+
+    off = write(tmp_path, "off", HEADER + "base:\n  model:\n    preset: small\n    state_margin: null\n")
+    on = write(tmp_path, "on", HEADER + "base:\n  model:\n    preset: small\n")
+    (trial_off,), (trial_on,) = load_sweep(off).trials, load_sweep(on).trials
+    assert trial_off.config.settings.model.state_margin is None
+    assert TrialConfig.from_canonical(trial_off.config.canonical()).settings.model.state_margin is None
+    assert trial_on.config.settings.model.state_margin == 0.25
+    assert trial_off.key != trial_on.key
+
+
 def validate(sweep: Path, capsys) -> tuple[int, str]:
     """``icemlab validate SWEEP`` in this process: (exit code, stderr)."""
     from orchestrator.cli import main

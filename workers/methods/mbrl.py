@@ -438,7 +438,12 @@ class MbrlProgram(Program):
                 f"{task.ensemble_preset!r} or 'small' (any field can be overridden)",
                 preset,
             )
-        overrides = {k: v for k, v in settings.model.model_dump().items() if v is not None and k != "preset"}
+        # An unset field takes the preset's value; one set to null on purpose (state_margin: null, no clamp) is
+        # passed on as None.
+        chosen = settings.model.model_fields_set
+        overrides = {
+            k: v for k, v in settings.model.model_dump().items() if (v is not None or k in chosen) and k != "preset"
+        }
         try:
             config = EnsembleConfig(**(ENSEMBLE_PRESETS[preset] | overrides))
         except ValidationError as error:
