@@ -110,6 +110,24 @@ def test_the_platform_rims_leave_the_bridges_as_the_only_way_to_the_lava():
     assert -8.6 < observations[-1, 0] < -8.0 and observations[:, 7].max() > 4.0  # hit at speed
 
 
+def test_a_cube_pushed_into_a_rim_slides_along_it_upright():
+    """Pressed into the start platform's rim beside the middle bridge and pushed along it with half the force
+    that presses it in, the cube slides (frictionless rims: no stick-slip switch for a model to learn there)
+    and stays upright."""
+    task = BridgeMaze(episode_length=40)
+    env = task.make_env()
+    env.reset(seed=0)
+    unwrapped = env.unwrapped
+    qpos = unwrapped.init_qpos.copy()
+    qpos[:2] = (-8.46, -2.0)  # touching start_rim_lower_middle (its face at x = -8.2)
+    unwrapped.set_state(qpos, np.zeros(unwrapped.model.nv))
+    for _ in range(20):
+        obs, *_ = env.step(task.env_action(np.array([1.0, -0.5])))
+    env.close()
+    assert obs[0] < -8.2 and obs[1] < -3.0  # held at the rim, slid over a metre along it
+    assert abs(obs[3]) > 0.99
+
+
 def test_without_termination_the_fall_costs_minus_one_per_step():
     task = BridgeMaze(episode_length=100, terminate_on_fall=False)
     observations, rewards, _, terminated = run(task, waypoint_controller(INTO_LAVA))
