@@ -73,6 +73,9 @@ def test_runs_to_settle_against_a_few_published_runs_reach_80_percent_power_or_a
     group = report.Group("halfcheetah_running", "mpc", {}, None, {}, [], 10.5, 0.0, statistics.Interval(10.5, 0, 0),
                          None, None, reference, few)  # fmt: skip
     assert "no number of runs settles it against 5 published runs" in report._comparison_text(group)
+    summary = report.Summary([group], "episode_return", "mean_return", "max", 0)
+    (row,) = csv.DictReader(io.StringIO(report.to_csv(summary)))
+    assert row["runs_to_settle"] == "unattainable"
 
 
 def test_a_reference_of_one_run_or_constant_runs_are_tested_only_where_a_test_is_defined():
