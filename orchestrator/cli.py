@@ -422,18 +422,24 @@ def _trial_metric_text(tracker, child, metric: str | None) -> str:
 
 def _trial_time_to_go(tracker, child) -> str:
     """'  about 1 h 40 min to go (5 rounds at the pace of its last 5)' for a running trial whose planned rounds are
-    recorded; empty before it has logged a round."""
+    recorded; empty before it has logged a round. Rounds count by their recorded relative work (an MBRL trial's
+    frozen row takes many iterations' time), all alike where none is recorded."""
     from orchestrator.plan import duration_text
     from orchestrator.tracking import ROUND_SECONDS
 
-    remaining = (child.planned_rounds or 0) - child.rounds
+    planned = child.planned_rounds or 0
+    remaining = planned - child.rounds
     if remaining <= 0:
         return ""
+    work = child.round_work
+    if work is None or len(work) != planned:
+        work = [1.0] * planned
     by_round = dict(tracker.metric_history(child.run_id, ROUND_SECONDS))  # a round logged twice counts once
-    recent = [by_round[index] for index in sorted(by_round)[-PACE_ROUNDS:]]
-    if not recent:
+    recent = [index for index in sorted(by_round)[-PACE_ROUNDS:] if 0 <= index < planned]
+    recent_work = sum(work[index] for index in recent)
+    if recent_work <= 0:
         return ""
-    seconds = remaining * sum(recent) / len(recent)
+    seconds = sum(work[child.rounds :]) * sum(by_round[index] for index in recent) / recent_work
     return (f"  about {duration_text(seconds)} to go ({remaining} round{'' if remaining == 1 else 's'} at the pace "
             f"of its last {len(recent)})")  # fmt: skip
 

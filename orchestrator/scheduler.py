@@ -24,7 +24,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -41,10 +41,12 @@ from orchestrator.tracking import (
     PARAM_THREADS,
     ROUND_SECONDS,
     TAG_PLANNED_ROUNDS,
+    TAG_ROUND_WORK,
     TAG_THREADS,
     TAG_THREADS_CHANGED,
     Tracker,
     TrialRun,
+    encode_round_work,
 )
 from workers.methods import METHODS
 
@@ -107,6 +109,18 @@ class TrialState:
     not_before: float = 0.0
     threads: int | None = None
     """CPUs per unit of work of the trial's latest attempt (from its run on a resume)."""
+    round_work: tuple[float, ...] = ()
+    """Each round's expected wall time relative to the others (Program.round_work); empty: all alike."""
+
+    def work_until(self, rounds: float) -> float:
+        """The work of the first ``rounds`` rounds; a fraction counts that share of the next round."""
+        if not self.round_work:
+            return rounds
+        whole = min(int(rounds), len(self.round_work))
+        done = sum(self.round_work[:whole])
+        if whole < len(self.round_work):
+            done += (rounds - whole) * self.round_work[whole]
+        return done
 
     def backoff(self) -> float:
         """Seconds to wait before the attempt after a lost process: growing while no round completes."""
@@ -117,6 +131,25 @@ class TrialState:
     def progressed(self) -> None:
         """A round completed: the next loss is not part of a crash loop, so its backoff starts over."""
         self.lost = 0
+
+
+def time_to_go(
+    states: Sequence[TrialState], in_round: Mapping[int, float], work_at_start: float, elapsed: float
+) -> float | None:
+    """Seconds until the trials' planned rounds are done, at the pace of the work done in this session.
+
+    Rounds weigh by their expected wall time (TrialState.round_work): an MBRL trial's frozen row takes many
+    iterations' time, so counting rounds alike would promise minutes for hours.
+
+    Args:
+        in_round: the finished fraction of the round in flight, by ``id`` of its trial's state.
+        work_at_start: the work done before this session (it says nothing about this session's pace).
+    """
+    done = sum(s.work_until(s.rounds_done + in_round.get(id(s), 0.0)) for s in states) - work_at_start
+    if done <= 0:
+        return None
+    remaining = sum(s.work_until(s.total_rounds) for s in states) - work_at_start - done
+    return remaining * elapsed / done
 
 
 @dataclass
@@ -342,11 +375,13 @@ class SweepScheduler:
                 previous = by_key.get(trial.key)
                 if previous is not None and previous.status == FINISHED:
                     continue
+                spec = trial.config.spec()
                 state = TrialState(
                     trial,
-                    self.program.planned_rounds(trial.config.spec()),
+                    self.program.planned_rounds(spec),
                     retries_left=self.sweep.retries,
                     lost_left=self.sweep.max_lost_processes,
+                    round_work=tuple(self.program.round_work(spec, self.counts)),
                 )
                 if previous is not None:
                     state.run_id = previous.run_id
@@ -376,8 +411,7 @@ class SweepScheduler:
         done = failed = 0
         started = time.monotonic()
         last_display = 0.0
-        total_rounds = sum(s.total_rounds for s in states)
-        rounds_at_start = sum(s.rounds_done for s in states)
+        work_at_start = sum(s.work_until(s.rounds_done) for s in states)
         self._threads = threads
 
         while queue or self._active:
@@ -413,10 +447,8 @@ class SweepScheduler:
             now = time.monotonic()
             if self.display is not None and (now - last_display >= POLL_SECONDS or not self._active):
                 last_display = now
-                rounds = sum(s.rounds_done for s in states) - rounds_at_start
-                rounds += sum(a.progress.get("fraction", 0.0) for a in self._active if a.phase == "running")
-                remaining = total_rounds - rounds_at_start - rounds
-                eta = remaining / (rounds / (now - started)) if rounds > 0 else None
+                in_round = {id(a.state): a.progress.get("fraction", 0.0) for a in self._active if a.phase == "running"}
+                eta = time_to_go(states, in_round, work_at_start, now - started)
                 self.display(
                     SweepState(
                         self.sweep.name,
@@ -503,7 +535,10 @@ class SweepScheduler:
         else:
             self.tracker.reopen_trial(state.run_id, state.attempts)
         self.tracker.record_provenance(state.run_id, self._provenance)  # the code that runs (or continues) it
-        self.tracker.set_tags(state.run_id, {TAG_PLANNED_ROUNDS: str(state.total_rounds)})  # for `icemlab status`
+        self.tracker.set_tags(  # for `icemlab status`
+            state.run_id,
+            {TAG_PLANNED_ROUNDS: str(state.total_rounds), TAG_ROUND_WORK: encode_round_work(state.round_work)},
+        )
         self._record_threads(state)
         group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())

@@ -55,6 +55,8 @@ TAG_ERROR_CLASS = "icemlab.error_class"
 TAG_ROUNDS = "icemlab.rounds"
 TAG_PLANNED_ROUNDS = "icemlab.planned_rounds"
 """How many rounds the trial has in all (set at every attempt)."""
+TAG_ROUND_WORK = "icemlab.round_work"
+"""Each round's expected wall time relative to the others, run-length coded (see :func:`encode_round_work`)."""
 TAG_FAILED_TRIALS = "icemlab.failed_trials"
 TAG_INTERRUPTED = "icemlab.interrupted"
 TAG_PLANNED_TRIALS = "icemlab.planned_trials"
@@ -93,6 +95,30 @@ FINISHED = RunStatus.to_string(RunStatus.FINISHED)
 FAILED = RunStatus.to_string(RunStatus.FAILED)
 KILLED = RunStatus.to_string(RunStatus.KILLED)
 RUNNING = RunStatus.to_string(RunStatus.RUNNING)
+
+
+def encode_round_work(work: Sequence[float]) -> str:
+    """Run-length code of per-round weights, e.g. ``0,1*40,13*3`` (a tag holds a few thousand characters; a trial
+    may have thousands of rounds, mostly alike)."""
+    runs: list[list] = []
+    for weight in work:
+        if runs and runs[-1][0] == weight:
+            runs[-1][1] += 1
+        else:
+            runs.append([weight, 1])
+    return ",".join(f"{weight:g}" + (f"*{count}" if count > 1 else "") for weight, count in runs)
+
+
+def decode_round_work(text: str) -> list[float] | None:
+    """The weights of :func:`encode_round_work`'s code; None for an empty or unreadable one."""
+    work: list[float] = []
+    try:
+        for part in text.split(","):
+            weight, _, count = part.partition("*")
+            work.extend([float(weight)] * (int(count) if count else 1))
+    except ValueError:
+        return None
+    return work or None
 
 
 def default_tracking_uri(directory: Path | None = None) -> str:
@@ -171,6 +197,11 @@ class TrialRun(NamedTuple):
         """Rounds the trial has in all (None: not recorded)."""
         value = self.tags.get(TAG_PLANNED_ROUNDS, "")
         return int(value) if value.isdigit() else None
+
+    @property
+    def round_work(self) -> list[float] | None:
+        """Each round's expected wall time relative to the others (None: not recorded or unreadable)."""
+        return decode_round_work(self.tags.get(TAG_ROUND_WORK, ""))
 
     @property
     def overrides(self) -> dict[str, Any]:

@@ -106,6 +106,16 @@ def test_frozen_rows_are_pets_then_razer_by_weight():
     assert MbrlProgram.planned_rounds(TrialSpec("mbrl", "bridge_maze", settings, 0)) == 1 + 10 + 3
 
 
+@pytest.mark.parametrize("planners, row", [(1, 5.0), (2, 3.0), (5, 1.0)])
+def test_a_frozen_row_weighs_its_episodes_spread_over_the_planning_workers(planners, row):
+    """Times to go weigh rounds by this: a frozen row of 5 episodes takes as long as ceil(5 / workers) iterations."""
+    settings = MbrlSettings(iterations=10, frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0]})
+    spec = TrialSpec("mbrl", "bridge_maze", settings, 0)
+    work = MbrlProgram.round_work(spec, {"planner": planners})
+    assert len(work) == MbrlProgram.planned_rounds(spec)
+    assert work == [0.0] + [1.0] * 10 + [row] * 3
+
+
 # --------------------------------------------------------------- the loop
 @pytest.fixture(scope="module")
 def tiny_run():

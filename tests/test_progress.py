@@ -48,3 +48,18 @@ def test_a_note_in_a_log_is_a_plain_line():
     display(STATE)
     display.note("resumed")
     assert log.getvalue() == describe(STATE) + "\nicemlab: note: resumed\n"
+
+
+def test_the_eta_weighs_the_rounds_to_go_by_their_work():
+    """A trial resumed after 40 one-episode iterations has done half an iteration's work of its session in
+    30 s, a minute per unit of work; its three frozen rows of 13 episodes each are 39 minutes away, and a trial
+    without recorded work counts its rounds alike."""
+    from orchestrator.scheduler import TrialState, time_to_go
+
+    mbrl = TrialState(trial=None, total_rounds=44, round_work=(0.0,) + (1.0,) * 40 + (13.0,) * 3, rounds_done=40)
+    at_start = mbrl.work_until(mbrl.rounds_done)
+    assert time_to_go([mbrl], {}, at_start, elapsed=30.0) is None  # nothing done in this session yet
+    seconds = time_to_go([mbrl], {id(mbrl): 0.5}, at_start, elapsed=30.0)
+    assert seconds == 60.0 * (0.5 + 39.0)
+    plain = TrialState(trial=None, total_rounds=10, rounds_done=4)
+    assert time_to_go([plain], {id(plain): 0.5}, 4.0, elapsed=30.0) == 60.0 * 5.5

@@ -605,6 +605,33 @@ def test_status_tells_a_running_trials_rounds_and_time_to_go_from_its_recent_rou
     assert "to go" not in cli("status", "long", cwd=tmp_path).stdout  # a stopped sweep is not on its way
 
 
+def test_status_weighs_the_rounds_to_go_by_their_recorded_work(tmp_path):
+    """An MBRL trial's three frozen rows of 13 episodes each after 40 one-episode iterations of a minute: about
+    39 minutes to go, not the 3 minutes of three rounds at the iterations' pace."""
+    from orchestrator.tracking import TAG_PLANNED_ROUNDS, TAG_ROUND_WORK, encode_round_work
+
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("loop", "loop", "hash", "name: loop\n", {}, "dev", planned_trials=1)
+    run_id = tracker.start_trial(parent, "mbrl", "mbrl", {"method": "mbrl", "seed": 0}, {"method": "mbrl"})
+    work = [0.0] + [1.0] * 40 + [13.0] * 3
+    tracker.set_tags(run_id, {TAG_PLANNED_ROUNDS: "44", TAG_ROUND_WORK: encode_round_work(work)})
+    for index in range(41):
+        tracker.log_round(run_id, index, index, {}, {}, 0, seconds=300.0 if index == 0 else 60.0)
+    line = cli("status", "loop", cwd=tmp_path).stdout.splitlines()[1]
+    assert "rounds   41/44" in line and line.endswith("about 39 min 00 s to go (3 rounds at the pace of its last 5)")
+
+
+@pytest.mark.parametrize(
+    "work, code",
+    [([1.0] * 5, "1*5"), ([0.0, 1.0, 1.0, 13.0, 13.0, 2.5], "0,1*2,13*2,2.5"), ([7.0], "7")],
+)
+def test_round_work_travels_in_a_short_tag(work, code):
+    from orchestrator.tracking import decode_round_work, encode_round_work
+
+    assert encode_round_work(work) == code and decode_round_work(code) == work
+    assert decode_round_work("") is None and decode_round_work("1*x") is None
+
+
 def test_report_of_a_sweep_without_a_finished_trial_points_to_status(tmp_path):
     tracker = Tracker(default_tracking_uri(tmp_path))
     parent = tracker.start_sweep("young", "young", "hash", "name: young\n", {}, "dev", planned_trials=2)

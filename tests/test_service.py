@@ -98,6 +98,7 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     assert [s for s, _ in steps] == list(range(16))  # 2 episodes x 8 steps, counted across episodes, once each
     assert [s for s, _ in history(tracker, run_id, "icemlab.round")] == [0, 1, 2, 3]  # 2 rounds per episode
     assert children[0].planned_rounds == 4  # told by `icemlab status` as "rounds 4/4"
+    assert children[0].round_work == [1.0] * 4  # which weighs them alike in its time to go
     episodes = history(tracker, run_id, "episode_return")
     assert [s for s, _ in episodes] == [0, 1]
     assert children[0].metrics["mean_return"] == pytest.approx(np.mean([v for _, v in episodes]))

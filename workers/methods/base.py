@@ -282,6 +282,16 @@ class Program(ABC):
         """Rounds of the whole trial (for progress and ETA; a trial may end sooner by reporting done)."""
 
     @classmethod
+    def round_work(cls, trial: TrialSpec, counts: Mapping[str, int]) -> list[float]:
+        """Each round's expected wall time relative to the others, one weight per planned round; times to go
+        weigh the rounds still to run by it (default: all rounds alike).
+
+        Args:
+            counts: worker counts the sweep's ``resources`` asks for, by role name (as for :meth:`roles_for`).
+        """
+        return [1.0] * cls.planned_rounds(trial)
+
+    @classmethod
     def label_text(cls, labels: Mapping[str, str]) -> list[str]:
         """The labels as short words for run names and report rows."""
         return [value if not value.replace(".", "").isdigit() else f"{key}={value}" for key, value in labels.items()]

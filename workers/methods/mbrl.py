@@ -559,6 +559,16 @@ class MbrlProgram(Program):
         rows = len(frozen_rows(settings)) if settings.frozen.episodes else 0
         return 1 + settings.iterations + rows
 
+    @classmethod
+    def round_work(cls, trial: TrialSpec, counts) -> list[float]:
+        """In planned episodes one after another: round 0 plans none (random episodes and a first training), an
+        iteration plans one, a frozen row its episodes spread over the planning workers (see _run_episodes)."""
+        settings: MbrlSettings = trial.settings
+        workers = max(1, counts.get("planner", 1))
+        row = float(math.ceil(settings.frozen.episodes / workers))
+        rows = len(frozen_rows(settings)) if settings.frozen.episodes else 0
+        return [0.0] + [1.0] * settings.iterations + [row] * rows
+
     # ----------------------------------------------------------------- run
     def __init__(self, trial: TrialSpec, roles, cpus: int):
         super().__init__(trial, roles, cpus)
