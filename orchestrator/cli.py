@@ -383,7 +383,10 @@ def cmd_status(args) -> int:
     plan = {trial.key for trial in loaded.trials} if loaded else None
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker, plan)}")
     metric = _recorded_metric(_recorded_sweep(tracker, parent.run_id))
-    for child in sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name):
+    children = sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name)
+    # A resume with changed keys leaves the old plan's runs under the parent: the file says which are its own.
+    own = [child for child in children if plan is None or child.trial_key in plan]
+    for child in own:
         shown = _trial_metric_text(tracker, child, metric[0] if metric else None)
         rounds = f"{child.rounds:>4d}" + (f"/{child.planned_rounds}" if child.planned_rounds else "")
         if parent.status == "RUNNING" and child.status == "RUNNING":
@@ -398,6 +401,9 @@ def cmd_status(args) -> int:
             print("      " + ", ".join(f"{name} {v}" for name, v in sorted(child.versions.items())))
             print(f"      ran on {machine.get('cpu_model', '?')}, {machine.get('cpus', '?')} CPUs, "
                   f"host {machine.get('host', '?')}")  # fmt: skip
+    if stale := len(children) - len(own):
+        print(f"  and {stale} run{'' if stale == 1 else 's'} of trials this file no longer defines "
+              f"(an earlier version of it); not counted above")  # fmt: skip
     return 0
 
 

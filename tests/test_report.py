@@ -670,6 +670,7 @@ def test_status_tells_a_running_sweeps_time_to_go_at_its_sessions_pace(tmp_path)
     assert "finished 6 of 4" in everything  # without the file nothing says which runs are stale
     status = cli("status", str(sweep), cwd=tmp_path).stdout
     assert "finished 2 of 4  running 0  failed 1  killed 0" in status
+    assert "stale" not in status and "and 4 runs of trials this file no longer defines" in status
     # 2 to go (the retried failure and the last trial) at 1 trial per 600 s of this session: about 20 minutes.
     assert "about 20 min" in status and "to go at this session's pace (1 finished in 10 min" in status
     tracker.end_sweep(parent, "KILLED", {})
