@@ -117,6 +117,7 @@ BAD_INPUT = {
     "her_k_negative": ("learner: {her_k: -1}", "base.learner.her_k", "greater than or equal to 0"),
     "goal_space": ("goal_dim: 3", "goal_dim", "6-D goal space, not 3-D"),
     "ddl_with_triangles": ("reward: ddl_her\n  distance: {triangular: true}", "distance", "triangular: false"),
+    "null_hidden": ("distance: {hidden: null}", "distance.hidden", "valid tuple"),
 }
 
 

@@ -564,8 +564,10 @@ def _problem(loc: tuple, value: Any, message: str) -> dict[str, Any]:
 
 
 def _merged(model: type, defaults: Any, choices: Any, prefix: str, problems: list[dict[str, Any]]):
-    """``model`` from the thesis defaults with the set choices on top; problems located under ``prefix``."""
-    chosen = {key: value for key, value in choices.model_dump().items() if value is not None}
+    """``model`` from the thesis defaults with the set choices on top; problems located under ``prefix``. A field
+    set to null counts as set: null where the setting takes it (``distance.triangular_target_cap: null`` over a
+    base's cap), a located error where it does not."""
+    chosen = {key: getattr(choices, key) for key in choices.model_fields_set}
     try:
         return model(**(defaults.model_dump() | chosen))
     except ValidationError as error:
