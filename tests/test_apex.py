@@ -358,7 +358,9 @@ def test_fig_11_lambda_stays_zero_until_an_elite_moves_the_box(workers):
 # -------------------------------------------------------------- policy
 def test_policy_training_fits_and_weights_round_trip_without_pickle(tmp_path):
     rng = np.random.default_rng(0)
-    observations = rng.normal(size=(300, 5)) * [1, 10, 0.1, 1, 0]  # one constant feature
+    # One constant feature, and one far from zero with a small spread, where a mean stored in float32 is off by
+    # up to 0.003 standard deviations: the stored standardisation must be the one trained with.
+    observations = rng.normal(size=(300, 5)) * [1, 10, 0.1, 0.01, 0] + [0, 0, 0, 1000.3, 0]
     actions = np.clip(np.tanh(observations[:, :2] @ np.array([[1.0, -0.5], [0.05, 0.1]])), -1, 1)
     trainer = PolicyTrainer(0, {"gradient_steps": 150, "batch_size": 64}, task="point_reach", obs_dim=5, action_dim=2)
     untrained = trainer.weights()

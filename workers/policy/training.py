@@ -146,8 +146,9 @@ class PolicyTrainer:
         for index, layer in enumerate(self.linears):
             arrays[f"w{index}"] = layer.weight.detach().numpy().T.copy()
             arrays[f"b{index}"] = layer.bias.detach().numpy().copy()
-        arrays["input_mean"] = self.mean.astype(np.float32)
-        arrays["input_std"] = self.std.astype(np.float32)
+        # Kept in float64 as trained: inputs far from zero with a small spread lose their standardisation in float32.
+        arrays["input_mean"] = self.mean.astype(np.float64)
+        arrays["input_std"] = self.std.astype(np.float64)
         return PolicyWeights(self.version, arrays, self.task)
 
     # ----------------------------------------------------------- training
