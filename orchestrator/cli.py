@@ -305,6 +305,15 @@ def cmd_run(args) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
+    except Exception as error:
+        if display:
+            display.close()
+        print(
+            f"icemlab: the driver stopped on {type(error).__name__}: {error} (traceback below); the sweep's runs "
+            f"say so in MLflow. Once the cause is fixed, continue with: icemlab run {args.sweep} --resume",
+            file=sys.stderr,
+        )
+        raise
     if display:
         display.close()
     print(outcome.table)
@@ -382,6 +391,10 @@ def cmd_status(args) -> int:
         return 1
     plan = {trial.key for trial in loaded.trials} if loaded else None
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker, plan)}")
+    from orchestrator.tracking import TAG_ERROR, TAG_ERROR_CLASS
+
+    if TAG_ERROR in parent.tags:  # the driver itself stopped on an error
+        print(f"  {parent.tags.get(TAG_ERROR_CLASS, 'error')}: {parent.tags[TAG_ERROR].strip().splitlines()[-1][:300]}")
     metric = _recorded_metric(_recorded_sweep(tracker, parent.run_id))
     children = sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name)
     # A resume with changed keys leaves the old plan's runs under the parent: the file says which are its own.

@@ -23,6 +23,10 @@ from typing import NamedTuple
 CODE_ERROR = "code_error"
 LOST_PROCESS = "lost_process"
 BAD_CHECKPOINT = "bad_checkpoint"
+INTERRUPTED = "interrupted"
+"""Ctrl-C: the run ends KILLED and continues with ``--resume``."""
+DRIVER_ERROR = "driver_error"
+"""The driver itself raised (e.g. the tracking store failed): the runs end KILLED, the sweep FAILED."""
 
 _NODE_MEMORY = re.compile(r"was ([\d.]+\s*[KMGT]?i?B) used / ([\d.]+\s*[KMGT]?i?B) limit")
 _MEMORY_WORDS = re.compile(r"out of memory|OOM|low on memory|memory usage|memory monitor", re.IGNORECASE)

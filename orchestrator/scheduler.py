@@ -24,12 +24,21 @@ import logging
 import os
 import sys
 import time
+import traceback
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 from orchestrator import provenance, report
-from orchestrator.failures import BAD_CHECKPOINT, CODE_ERROR, LOST_PROCESS, Failure, classify
+from orchestrator.failures import (
+    BAD_CHECKPOINT,
+    CODE_ERROR,
+    DRIVER_ERROR,
+    INTERRUPTED,
+    LOST_PROCESS,
+    Failure,
+    classify,
+)
 from orchestrator.interrupt import InterruptRequest
 from orchestrator.placement import TrialGroup, bundle_layout, groups_that_fit
 from orchestrator.sweep import LoadedSweep, Trial
@@ -40,6 +49,7 @@ from orchestrator.tracking import (
     KILLED,
     PARAM_THREADS,
     ROUND_SECONDS,
+    RUNNING,
     TAG_PLANNED_ROUNDS,
     TAG_ROUND_WORK,
     TAG_THREADS,
@@ -279,6 +289,10 @@ class SweepScheduler:
         self.experiment = self.sweep.tracking.experiment or self.sweep.name
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
         self._active: list[Attempt] = []
+        self._queue: list[TrialState] = []
+        """Trials waiting for CPUs or a retry's backoff."""
+        self._launched: set[int] = set()
+        """``id`` of the trial states launched in this session (their runs are this driver's to close)."""
         self.allow_physics_change = allow_physics_change
         self.notice = notice or _print_notice
         self._provenance = provenance.current()
@@ -386,6 +400,7 @@ class SweepScheduler:
                 if previous is not None:
                     state.run_id = previous.run_id
                     state.attempts = previous.attempts
+                    state.recovered = self.tracker.recoveries(previous.run_id)  # numbered on, not over
                     state.logged_rounds = self.tracker.logged_rounds(previous.run_id)
                     state.rounds_done = len(state.logged_rounds)
                     state.threads = previous.threads_per_worker
@@ -396,7 +411,17 @@ class SweepScheduler:
                 return self._drive(parent_id, states, skipped, threads, concurrent, interrupt)
         except KeyboardInterrupt:
             if parent_id is not None:
-                self._abort(parent_id)
+                self._abort(parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
+            raise
+        except Exception as error:
+            # The driver itself failed (the tracking store, a round report it could not log, ...): say so in
+            # MLflow rather than leave the runs RUNNING; the trials continue with --resume.
+            if parent_id is not None:
+                cause = f"the driver stopped: {type(error).__name__}: {error}"
+                try:
+                    self._abort(parent_id, DRIVER_ERROR, cause, traceback.format_exc())
+                except Exception as recording:  # the store itself may be what failed
+                    log.error("the driver's failure could not be recorded in MLflow: %s", recording)
             raise
         finally:
             for attempt in list(self._active):
@@ -407,7 +432,7 @@ class SweepScheduler:
     def _drive(self, parent_id, states, skipped, threads, concurrent, interrupt) -> SweepOutcome:
         import ray
 
-        queue = list(states)
+        queue = self._queue = list(states)
         done = failed = 0
         started = time.monotonic()
         last_display = 0.0
@@ -512,28 +537,30 @@ class SweepScheduler:
     def _launch(self, state: TrialState) -> Attempt:
         trial, config = state.trial, state.trial.config
         state.attempts += 1
+        self._launched.add(id(state))
+        params = config.flat() | {
+            PARAM_THREADS: self._threads,
+            "resources.simulation_workers": self.sweep.resources.simulation_workers,
+        }
+        if trial.variant:
+            params["variant"] = trial.variant
+        artifacts = {"trial.json": json.dumps(config.canonical(), indent=2, sort_keys=True)}
         if state.run_id is None:
-            spec = config.spec()
             tags = {"task": config.task, "method": config.method, "seed": str(config.seed)}
-            tags |= METHODS[config.method].labels(spec)
-            params = config.flat() | {
-                PARAM_THREADS: self._threads,
-                "resources.simulation_workers": self.sweep.resources.simulation_workers,
-            }
-            if trial.variant:
-                params["variant"] = trial.variant
+            tags |= METHODS[config.method].labels(config.spec())
             state.run_id = self.tracker.start_trial(
                 self._parent_id,
                 trial.key,
                 name=f"{trial_label(trial)}#{trial.key[:6]}",
                 params=params,
                 tags=tags,
-                artifacts={"trial.json": json.dumps(config.canonical(), indent=2, sort_keys=True)},
+                artifacts=artifacts,
                 variant=trial.variant,
                 overrides=trial.overrides,
             )
         else:
-            self.tracker.reopen_trial(state.run_id, state.attempts)
+            # A driver killed right after creating the run may have left its params or trial.json unwritten.
+            self.tracker.reopen_trial(state.run_id, state.attempts, params, artifacts)
         self.tracker.record_provenance(state.run_id, self._provenance)  # the code that runs (or continues) it
         self.tracker.set_tags(  # for `icemlab status`
             state.run_id,
@@ -564,6 +591,7 @@ class SweepScheduler:
         if attempt.phase == "restoring":
             attempt.phase, attempt.round_index = "running", int(value)
             attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
+            attempt.progress = {}  # the ETA must not count an earlier round's fraction as this one's
             return False
 
         round_report, data, recovered = value
@@ -579,6 +607,7 @@ class SweepScheduler:
             # The next round starts before this one is logged: logging overlaps with work.
             attempt.round_index = round_report.index + 1
             attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
+            attempt.progress = {}  # the finished round's fraction (about 1) is not the next one's
         if round_report.index not in state.logged_rounds:
             self.tracker.log_round(
                 state.run_id,
@@ -591,12 +620,15 @@ class SweepScheduler:
                 round_report.seconds,
             )
             state.logged_rounds.add(round_report.index)
+        if round_report.done:
+            # The run ends before the last checkpoint is written: a driver killed in between resumes from the
+            # checkpoint before and repeats the last round (logged once), never continues past it.
+            self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
         state.progressed()
         if not round_report.done:
             return False
-        self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
         state.rounds_done = state.total_rounds
         self._end_attempt(attempt)
         return True
@@ -678,17 +710,27 @@ class SweepScheduler:
             self.tracker.end_sweep(parent_id, FINISHED, totals, failed_trials=failed, artifacts=artifacts)
         return table
 
-    def _abort(self, parent_id: str) -> None:
-        """Ctrl-C: the running trials' runs and the sweep's end KILLED, then their actors are stopped."""
+    def _abort(self, parent_id: str, kind: str, cause: str, detail: str) -> None:
+        """Ctrl-C or a driver error: the runs this session opened and left unfinished end KILLED with the cause
+        (also those waiting out a retry's backoff), the sweep KILLED (FAILED for a driver error); then the
+        running trials' actors are stopped."""
         active = list(self._active)
-        for attempt in active:
-            self.tracker.record_failure(
-                attempt.state.run_id, attempt.state.attempts, "interrupted", "interrupted (Ctrl-C)", ""
-            )
-            self.tracker.end_trial(attempt.state.run_id, KILLED)
-        self.tracker.end_sweep(parent_id, KILLED, {}, interrupted=True)
-        for attempt in active:
-            try:
-                self._end_attempt(attempt)
-            except Exception:  # Ray itself may be going down with the same signal
-                pass
+        waiting = [s for s in self._queue if id(s) in self._launched and all(a.state is not s for a in active)]
+        try:
+            for state in [a.state for a in active] + waiting:
+                run = self.tracker.trial_run(state.run_id)
+                if run is None or run.status != RUNNING:
+                    continue
+                self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)
+                self.tracker.end_trial(state.run_id, KILLED)
+            if kind == INTERRUPTED:
+                self.tracker.end_sweep(parent_id, KILLED, {}, interrupted=True)
+            else:
+                self.tracker.record_failure(parent_id, 0, kind, cause, detail)
+                self.tracker.end_sweep(parent_id, FAILED, {})
+        finally:
+            for attempt in active:
+                try:
+                    self._end_attempt(attempt)
+                except Exception:  # Ray itself may be going down with the same signal
+                    pass

@@ -446,17 +446,31 @@ class Tracker:
             tags[TAG_VARIANT] = variant
         tags |= {TAG_OVERRIDE + key: json.dumps(value) for key, value in overrides.items()}
         run = self.client.create_run(parent.info.experiment_id, run_name=name, tags=tags)
-        params_list = [Param(k, _param(v)) for k, v in params.items()]
-        for start in range(0, len(params_list), 100):
-            self.client.log_batch(run.info.run_id, params=params_list[start : start + 100])
-        for path, text in artifacts.items():
-            self.client.log_text(run.info.run_id, text, path)
+        self._record_trial(run.info.run_id, params, artifacts)
         return run.info.run_id
 
-    def reopen_trial(self, run_id: str, attempt: int) -> None:
-        """Continue a trial's run for another attempt (after a failure, a lost process or a resume)."""
+    def _record_trial(self, run_id: str, params: Mapping[str, Any], artifacts: Mapping[str, str]) -> None:
+        params_list = [Param(k, _param(v)) for k, v in params.items()]
+        for start in range(0, len(params_list), 100):
+            self.client.log_batch(run_id, params=params_list[start : start + 100])
+        for path, text in artifacts.items():
+            self.client.log_text(run_id, text, path)
+
+    def reopen_trial(
+        self, run_id: str, attempt: int, params: Mapping[str, Any] = {}, artifacts: Mapping[str, str] = {}
+    ) -> None:
+        """Continue a trial's run for another attempt (after a failure, a lost process or a resume), first
+        recording those of ``params`` and ``artifacts`` it lacks (a driver may have died while it created the
+        run; a recorded param keeps its value)."""
+        run = self.client.get_run(run_id)
+        present = set(self.list_files(run_id)) if artifacts else set()
+        self._record_trial(
+            run_id,
+            {k: v for k, v in params.items() if k not in run.data.params},
+            {path: text for path, text in artifacts.items() if path not in present},
+        )
         self.client.set_tag(run_id, TAG_ATTEMPTS, str(attempt))
-        if self.client.get_run(run_id).info.status != RUNNING:
+        if run.info.status != RUNNING:
             self.client.update_run(run_id, status=RUNNING)
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
@@ -530,6 +544,10 @@ class Tracker:
         """
         self.client.log_batch(run_id, metrics=[Metric(f"recovered/{kind}", 1.0, _now_ms(), number)])
         self.client.log_text(run_id, f"class: {kind}\ncause: {cause}\n", f"failures/recovery_{number:03d}_{kind}.txt")
+
+    def recoveries(self, run_id: str) -> int:
+        """How many in-place recoveries a trial's run records (the next one is numbered after them)."""
+        return sum(1 for path in self.list_files(run_id, "failures") if path.rsplit("/", 1)[-1].startswith("recovery_"))
 
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
         """Close a trial's run: FINISHED with its summary metrics, or FAILED / KILLED."""

@@ -20,6 +20,7 @@ import signal
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -305,6 +306,171 @@ def test_killed_trainer_is_recovered_in_place_from_the_last_round(tmp_path, loca
     assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
     assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
     assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
+
+
+class DriverDied(BaseException):
+    """Stands for the driver process dying at that point: nothing of the scheduler's handles it."""
+
+
+class DyingTracker(Tracker):
+    """A tracker whose driver dies (or whose store fails) at the first call of ``method`` that ``when`` matches."""
+
+    def __init__(self, uri, method: str, when: Callable[..., bool], error: BaseException):
+        super().__init__(uri)
+        original = getattr(self, method)
+
+        def dying(*args, **kwargs):
+            if when(*args, **kwargs) and not self.died:
+                self.died = True
+                raise error
+            return original(*args, **kwargs)
+
+        self.died = False
+        setattr(self, method, dying)
+
+
+def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no_further(tmp_path, local_ray):
+    """The driver dies as it closes the finished trial: the resume must not continue past the last round (a
+    checkpoint of the last round written before the run ended would make it run a fifth)."""
+    sweep = toy_sweep(tmp_path, "last_round")
+    uri = default_tracking_uri(tmp_path)
+    dying = DyingTracker(uri, "end_trial", lambda run_id, status, *_: status == FINISHED, DriverDied())
+    with pytest.raises(DriverDied):
+        SweepScheduler(load_sweep(sweep), dying).run()
+    (child,) = sweep_runs(uri, "last_round")[1]
+    assert child.status == RUNNING and [s for s, _ in history(dying, child.run_id, "icemlab.round")] == [0, 1, 2, 3]
+
+    tracker = Tracker(uri)
+    outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
+    assert (outcome.finished, outcome.failed) == (1, 0)
+    (child,) = sweep_runs(uri, "last_round")[1]
+    assert child.status == FINISHED and child.attempts == 2
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
+    assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
+    assert child.metrics["final_loss"] == uninterrupted_toy_losses(sweep)[-1]
+
+
+def test_an_error_of_the_driver_is_recorded_in_mlflow_and_the_sweep_resumes(tmp_path, local_ray):
+    """The tracking store refuses round 2's metrics: the error goes on to the caller, and MLflow says what
+    happened (the sweep FAILED with the cause, the trial KILLED with a driver_error), not RUNNING forever."""
+    sweep = toy_sweep(tmp_path, "store_error")
+    uri = default_tracking_uri(tmp_path)
+    dying = DyingTracker(uri, "log_round", lambda run_id, index, *_, **__: index == 2, OSError("disk full"))
+    with pytest.raises(OSError, match="disk full"):
+        SweepScheduler(load_sweep(sweep), dying).run()
+    parent, (child,) = sweep_runs(uri, "store_error")
+    assert parent.status == FAILED and parent.tags["icemlab.error_class"] == "driver_error"
+    assert "OSError: disk full" in parent.tags["icemlab.error"]
+    assert child.status == KILLED and child.error_class == "driver_error" and "disk full" in child.error
+    assert any(f.endswith("driver_error.txt") for f in dying.list_files(child.run_id, "failures"))
+    status = cli("status", str(sweep), cwd=tmp_path).stdout
+    assert "driver_error: the driver stopped: OSError: disk full" in status.splitlines()[1]
+
+    tracker = Tracker(uri)
+    outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
+    assert (outcome.finished, outcome.failed) == (1, 0)
+    (child,) = sweep_runs(uri, "store_error")[1]
+    assert child.status == FINISHED and [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]
+
+
+def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
+    """A trial whose process was lost waits for its retry outside the running attempts; Ctrl-C then must end its
+    run KILLED too, not leave it RUNNING under a KILLED sweep."""
+    from orchestrator.scheduler import TrialState
+
+    sweep = toy_sweep(tmp_path, "backoff")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("backoff", "backoff", "hash", sweep.read_text(), {}, "dev")
+    waiting = TrialState(load_sweep(sweep).trials[0], 4, attempts=1)
+    waiting.run_id = tracker.start_trial(parent, waiting.trial.key, "waiting", {"seed": 0}, {})
+    untouched = TrialState(load_sweep(sweep).trials[0], 4, attempts=1)  # from an earlier session, not launched
+    untouched.run_id = tracker.start_trial(parent, "earlier", "earlier", {"seed": 0}, {})
+    scheduler._queue, scheduler._launched = [waiting, untouched], {id(waiting)}
+    scheduler._abort(parent, "interrupted", "interrupted (Ctrl-C)", "")
+    runs = {run.run_id: run for run in tracker.trial_runs(parent)}
+    assert runs[waiting.run_id].status == KILLED and runs[waiting.run_id].error_class == "interrupted"
+    assert runs[untouched.run_id].status == RUNNING  # not this session's to close
+
+
+def test_a_reopened_run_gets_the_params_and_files_a_dying_driver_left_unwritten(tmp_path):
+    """A driver killed between creating a trial's run and logging its params left a run without them: the
+    next attempt writes what is missing and keeps what is there (a param's value cannot change)."""
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("bare", "bare", "hash", "name: bare\n", {}, "dev")
+    bare = tracker.start_trial(parent, "bare", "bare", {}, {})
+    partial = tracker.start_trial(parent, "partial", "partial", {PARAM_THREADS: 2}, {})
+    params, files = {"seed": 3, "planner.budget": 50, PARAM_THREADS: 1}, {"trial.json": "{}"}
+    for run_id in (bare, partial):
+        tracker.reopen_trial(run_id, 2, params, files)
+    runs = {run.run_id: run for run in tracker.trial_runs(parent)}
+    assert runs[bare].params == {"seed": "3", "planner.budget": "50", PARAM_THREADS: "1"}
+    assert runs[partial].params[PARAM_THREADS] == "2" and runs[partial].params["seed"] == "3"
+    assert all("trial.json" in tracker.list_files(run_id) for run_id in (bare, partial))
+    assert runs[bare].attempts == 2
+
+
+def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
+    """Between a round's end and the next poll of the runner, the ETA must not count the finished round's fraction
+    (about 1) as progress of the next one: for an MBRL frozen row that is hours early."""
+    from orchestrator.scheduler import Attempt, TrialState, time_to_go
+    from workers.methods import RoundReport
+
+    class Call:
+        def remote(self, *args):
+            return "ref"
+
+    class Group:
+        runner = type("Runner", (), {"run_round": Call()})()
+
+    sweep = toy_sweep(tmp_path, "fraction")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("fraction", "fraction", "hash", sweep.read_text(), {}, "dev")
+    state = TrialState(load_sweep(sweep).trials[0], 3, round_work=(1.0, 1.0, 13.0), rounds_done=1)
+    state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    attempt = Attempt(state, Group(), phase="running", round_index=1, progress={"fraction": 1.0, "text": "step 10"})
+    scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", []))
+    assert attempt.round_index == 2 and attempt.progress == {}
+    # One unit of work in this session's 60 s: the frozen row's 13 units are 13 minutes away.
+    assert time_to_go([state], {id(state): attempt.progress.get("fraction", 0.0)}, 1.0, 60.0) == 13 * 60.0
+
+
+def test_a_resumed_trials_recoveries_are_numbered_on(tmp_path, local_ray):
+    """A recovery in a resumed session is the trial's second, not a second first: both records stay."""
+    sweep = toy_sweep(tmp_path, "renumber", train_seconds=1.0)
+    uri = default_tracking_uri(tmp_path)
+    dying = DyingTracker(uri, "log_round", lambda run_id, index, *_, **__: index == 1, DriverDied())
+    with pytest.raises(DriverDied):
+        SweepScheduler(load_sweep(sweep), dying).run()
+    (child,) = sweep_runs(uri, "renumber")[1]
+    dying.record_recovery(child.run_id, 1, "lost_process", "the first session's trainer died")
+
+    tracker = Tracker(uri)
+    scheduler = SweepScheduler(load_sweep(sweep), tracker, resume=True)
+
+    def kill_the_trainer_in_training():
+        def trainer():
+            active = scheduler._active
+            if active and active[0].phase == "running":
+                return active[0].group.workers["trainer"][0]
+            return None
+
+        worker = wait_for(trainer, timeout=120, interval=0.05, what="a running round")
+        time.sleep(0.5)  # inside the training call (it sleeps 1 s first)
+        os.kill(ray.get(worker.pid.remote()), signal.SIGKILL)
+
+    killer = threading.Thread(target=kill_the_trainer_in_training, daemon=True)
+    killer.start()
+    assert scheduler.run().finished == 1
+    killer.join(timeout=5)
+    (child,) = sweep_runs(uri, "renumber")[1]
+    assert history(tracker, child.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0)]
+    files = sorted(tracker.list_files(child.run_id, "failures"))
+    assert [f.rsplit("/", 1)[-1] for f in files if "recovery" in f] == [
+        "recovery_001_lost_process.txt",
+        "recovery_002_lost_process.txt",
+    ]
 
 
 @pytest.mark.parametrize("method", ["toy", pytest.param("mpc", marks=pytest.mark.slow)])
