@@ -177,6 +177,8 @@ class Attempt:
     progress: dict[str, Any] = field(default_factory=dict)
     progress_ref: Any = None
     rss_mb: float | None = None
+    logged_a_round: bool = False
+    """Whether this attempt has reached the logging of a round (the first may repeat a partly logged one)."""
 
 
 class SweepState(NamedTuple):
@@ -618,8 +620,10 @@ class SweepScheduler:
                 round_report.series_start,
                 [(a.path, a.data) for a in round_report.artifacts],
                 round_report.seconds,
+                after_a_crash=state.attempts > 1 and not attempt.logged_a_round,
             )
             state.logged_rounds.add(round_report.index)
+        attempt.logged_a_round = True
         if round_report.done:
             # The run ends before the last checkpoint is written: a driver killed in between resumes from the
             # checkpoint before and repeats the last round (logged once), never continues past it.

@@ -502,8 +502,15 @@ class Tracker:
         series_start: int,
         artifacts: Sequence[tuple[str, bytes]] = (),
         seconds: float | None = None,
+        after_a_crash: bool = False,
     ) -> None:
-        """Log one round: per-step series, round metrics at ``step``, files; the round marker last."""
+        """Log one round: per-step series, round metrics at ``step``, files; the round marker last.
+
+        Args:
+            after_a_crash: the round may have been logged in part before its attempt ended (a round of more
+                than MAX_BATCH entries is written in several batches, the marker in the last): the (metric,
+                step) entries already written are not written again.
+        """
         now = _now_ms()
         entries = [
             Metric(key, float(value), now, series_start + t)
@@ -511,6 +518,10 @@ class Tracker:
             for t, value in enumerate(values)
         ]
         entries += [Metric(key, float(value), now, step) for key, value in metrics.items()]
+        if after_a_crash:
+            keys = {entry.key for entry in entries}
+            written = {(key, m.step) for key in keys for m in self.client.get_metric_history(run_id, key)}
+            entries = [entry for entry in entries if (entry.key, entry.step) not in written]
         if artifacts:
             with tempfile.TemporaryDirectory() as directory:
                 for path, data in artifacts:

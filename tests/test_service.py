@@ -367,10 +367,18 @@ def test_an_error_of_the_driver_is_recorded_in_mlflow_and_the_sweep_resumes(tmp_
     assert "driver_error: the driver stopped: OSError: disk full" in status.splitlines()[1]
 
     tracker = Tracker(uri)
+    log_round, crash_flags = tracker.log_round, []
+
+    def spied(*args, after_a_crash=False, **kwargs):
+        crash_flags.append(after_a_crash)
+        log_round(*args, after_a_crash=after_a_crash, **kwargs)
+
+    tracker.log_round = spied
     outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
     assert (outcome.finished, outcome.failed) == (1, 0)
     (child,) = sweep_runs(uri, "store_error")[1]
     assert child.status == FINISHED and [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]
+    assert crash_flags == [True, False]  # round 2 may have been written in part; round 3 is new
 
 
 def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
@@ -408,6 +416,32 @@ def test_a_reopened_run_gets_the_params_and_files_a_dying_driver_left_unwritten(
     assert runs[partial].params[PARAM_THREADS] == "2" and runs[partial].params["seed"] == "3"
     assert all("trial.json" in tracker.list_files(run_id) for run_id in (bare, partial))
     assert runs[bare].attempts == 2
+
+
+@pytest.mark.parametrize("after_a_crash", [True, False])
+def test_a_round_logged_in_part_before_a_crash_is_completed_without_duplicates(tmp_path, after_a_crash):
+    """A round of 1,500 steps is written in two batches; the driver dies after the first. Logged again after the
+    crash, each step is in MLflow once (without the flag the first batch's steps are there twice)."""
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("long", "long", "hash", "name: long\n", {}, "dev")
+    run_id = tracker.start_trial(parent, "trial", "trial", {"seed": 0}, {})
+    series = {"step/reward": list(np.linspace(0.0, 1.0, 1500))}
+    log_batch, batches = tracker.client.log_batch, []
+
+    def dies_after_one_batch(*args, **kwargs):
+        if batches:
+            raise DriverDied()
+        batches.append(log_batch(*args, **kwargs))
+
+    tracker.client.log_batch = dies_after_one_batch
+    with pytest.raises(DriverDied):
+        tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0)
+    tracker.client.log_batch = log_batch
+    assert tracker.logged_rounds(run_id) == set()  # the marker is in the batch that was not written
+    tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0, after_a_crash=after_a_crash)
+    steps = Counter(s for s, _ in history(tracker, run_id, "step/reward"))
+    assert sorted(steps) == list(range(1500)) and (max(steps.values()) == 1) == after_a_crash
+    assert tracker.logged_rounds(run_id) == {0}
 
 
 def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
