@@ -118,6 +118,11 @@ BAD_INPUT = {
     "goal_space": ("goal_dim: 3", "goal_dim", "6-D goal space, not 3-D"),
     "ddl_with_triangles": ("reward: ddl_her\n  distance: {triangular: true}", "distance", "triangular: false"),
     "null_hidden": ("distance: {hidden: null}", "distance.hidden", "valid tuple"),
+    "triangles_without_counts": (
+        "distance: {temporal: regression, triangular: true}",
+        "distance",
+        "needs temporal: off_policy",
+    ),
 }
 
 

@@ -94,6 +94,9 @@ class DistanceSettings(BaseModel):
                 "d(s, g) (conditioning: state) is DDL: it needs temporal: regression and triangular: false; "
                 "the off-policy and triangular losses need d(s, a, g)"
             )
+        if self.triangular and self.temporal != "off_policy":
+            # Eq. 31b's mask reads the pair counts N(s, a, g), which only the off-policy temporal loss keeps.
+            raise ValueError("triangular: true needs temporal: off_policy (its mask reads the pair counts)")
         return self
 
 
