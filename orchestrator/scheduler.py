@@ -629,6 +629,7 @@ class SweepScheduler:
             # checkpoint before and repeats the last round (logged once), never continues past it.
             self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
+        state.bad_checkpoints.discard(round_report.index)  # written anew: the refused one is gone
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
         state.progressed()
         if not round_report.done:

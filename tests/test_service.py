@@ -446,7 +446,8 @@ def test_a_round_logged_in_part_before_a_crash_is_completed_without_duplicates(t
 
 def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     """Between a round's end and the next poll of the runner, the ETA must not count the finished round's fraction
-    (about 1) as progress of the next one: for an MBRL frozen row that is hours early."""
+    (about 1) as progress of the next one: for an MBRL frozen row that is hours early. And a round's checkpoint
+    written anew is no longer the refused one of an earlier attempt."""
     from orchestrator.scheduler import Attempt, TrialState, time_to_go
     from workers.methods import RoundReport
 
@@ -463,9 +464,11 @@ def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     parent = tracker.start_sweep("fraction", "fraction", "hash", sweep.read_text(), {}, "dev")
     state = TrialState(load_sweep(sweep).trials[0], 3, round_work=(1.0, 1.0, 13.0), rounds_done=1)
     state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    state.bad_checkpoints = {1}  # round 1's checkpoint was refused in an earlier attempt
     attempt = Attempt(state, Group(), phase="running", round_index=1, progress={"fraction": 1.0, "text": "step 10"})
     scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", []))
     assert attempt.round_index == 2 and attempt.progress == {}
+    assert state.bad_checkpoints == set()  # written anew: a later restore may use it
     # One unit of work in this session's 60 s: the frozen row's 13 units are 13 minutes away.
     assert time_to_go([state], {id(state): attempt.progress.get("fraction", 0.0)}, 1.0, 60.0) == 13 * 60.0
 
