@@ -257,7 +257,7 @@ def cmd_run(args) -> int:
         _print_plan(loaded, args)
         return 0
     from orchestrator.progress import ProgressDisplay
-    from orchestrator.scheduler import PhysicsChangedError, ResourceError, SweepScheduler
+    from orchestrator.scheduler import PhysicsChangedError, ResourceError, SweepBusyError, SweepScheduler
     from orchestrator.tracking import KILLED, RUNNING, Tracker
 
     tracker = Tracker(args.tracking_uri)
@@ -293,7 +293,7 @@ def cmd_run(args) -> int:
     except ResourceError as error:
         print(f"icemlab: {error}; nothing was started", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except PhysicsChangedError as error:
+    except (PhysicsChangedError, SweepBusyError) as error:
         print(f"icemlab: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:

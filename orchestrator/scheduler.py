@@ -50,6 +50,7 @@ from orchestrator.tracking import (
     PARAM_THREADS,
     ROUND_SECONDS,
     RUNNING,
+    TAG_DRIVER,
     TAG_PLANNED_ROUNDS,
     TAG_ROUND_WORK,
     TAG_THREADS,
@@ -57,6 +58,7 @@ from orchestrator.tracking import (
     Tracker,
     TrialRun,
     encode_round_work,
+    live_driver,
 )
 from workers.methods import METHODS
 
@@ -82,6 +84,10 @@ class ResourceError(ValueError):
 
 class PhysicsChangedError(ValueError):
     """A resume whose finished trials ran with other physics packages than this process."""
+
+
+class SweepBusyError(ValueError):
+    """A resume of a sweep whose driver is still running: two drivers would run its trials twice."""
 
 
 def _print_notice(message: str) -> None:
@@ -320,6 +326,17 @@ class SweepScheduler:
         )
         return run_id, []
 
+    def _refuse_a_busy_resume(self) -> None:
+        """A resume while the sweep's driver still runs (on this host) would run its trials twice."""
+        previous = self.tracker.find_sweep_run(self.experiment, self.sweep.name) if self.resume else None
+        driver = live_driver(previous.tags.get(TAG_DRIVER)) if previous and previous.status == RUNNING else None
+        if driver is not None:
+            raise SweepBusyError(
+                f"sweep {self.sweep.name} is still being run by the driver with pid {driver} on this host; "
+                f"nothing was started. Wait for it (icemlab status {self.loaded.path}), or stop it with "
+                f"kill -INT {driver} and resume then"
+            )
+
     def group_bundles(self, unit: int) -> list[dict[str, float]]:
         """The placement-group bundles of one trial when a unit of work gets ``unit`` CPUs."""
         spec = self.loaded.trials[0].config.spec()
@@ -375,6 +392,7 @@ class SweepScheduler:
     def run(self) -> SweepOutcome:
         import ray
 
+        self._refuse_a_busy_resume()
         started_ray = connect_ray(self.address)  # before any MLflow run exists: a bad address leaves no trace
         parent_id = None
         try:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import socket
 import tempfile
 import time
 from collections.abc import Iterable, Mapping, Sequence
@@ -61,6 +62,8 @@ TAG_FAILED_TRIALS = "icemlab.failed_trials"
 TAG_INTERRUPTED = "icemlab.interrupted"
 TAG_PLANNED_TRIALS = "icemlab.planned_trials"
 """How many trials the sweep file defines (set when the sweep starts or resumes)."""
+TAG_DRIVER = "icemlab.driver"
+"""host:pid of the driver of the sweep's current session (a resume refuses while it runs)."""
 TAG_SESSION_STARTED = "icemlab.session_started"
 """When the sweep's current session (its start, or its latest resume) began, in seconds since the epoch."""
 TAG_OVERRIDE = "icemlab.override."
@@ -95,6 +98,24 @@ FINISHED = RunStatus.to_string(RunStatus.FINISHED)
 FAILED = RunStatus.to_string(RunStatus.FAILED)
 KILLED = RunStatus.to_string(RunStatus.KILLED)
 RUNNING = RunStatus.to_string(RunStatus.RUNNING)
+
+
+def this_driver() -> str:
+    """host:pid of this process, as the sweep's run records its driver."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def live_driver(recorded: str | None) -> int | None:
+    """The pid of a recorded driver that is an icemlab process still running on this host; None if it is gone,
+    is this process, or runs on another host (whose processes this one cannot see)."""
+    host, _, pid = (recorded or "").rpartition(":")
+    if host != socket.gethostname() or not pid.isdigit() or int(pid) == os.getpid():
+        return None
+    try:
+        command = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return None
+    return int(pid) if b"icemlab" in command or b"orchestrator.cli" in command else None  # not a reused pid
 
 
 def encode_round_work(work: Sequence[float]) -> str:
@@ -332,6 +353,7 @@ class Tracker:
                 TAG_SWEEP: sweep_name,
                 TAG_SWEEP_HASH: file_hash,
                 TAG_SESSION_STARTED: f"{time.time():.3f}",
+                TAG_DRIVER: this_driver(),
                 "icemlab.version": version,
                 **tags,
             },
@@ -345,6 +367,7 @@ class Tracker:
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)
         self.client.set_tag(run_id, TAG_PLANNED_TRIALS, str(planned_trials))
         self.client.set_tag(run_id, TAG_SESSION_STARTED, f"{time.time():.3f}")
+        self.client.set_tag(run_id, TAG_DRIVER, this_driver())
 
     def end_sweep(
         self,

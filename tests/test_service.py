@@ -645,6 +645,9 @@ def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
             what="a running trial",
         )
         assert driver.poll() is None, driver.stdout.read()
+        second = cli("run", str(sweep), "--resume", cwd=tmp_path)  # a second driver would run the trials twice
+        assert second.returncode == 2 and f"still being run by the driver with pid {driver.pid}" in second.stderr
+        assert "kill -INT" in second.stderr and sweep_runs(uri, "interrupt")[0].status == RUNNING
         time.sleep(1.0)
         os.killpg(driver.pid, signal.SIGINT)  # what a terminal sends on Ctrl-C
         output, _ = driver.communicate(timeout=120)
