@@ -308,9 +308,12 @@ def cmd_run(args) -> int:
     except Exception as error:
         if display:
             display.close()
+        recorded = "the sweep's runs say so in MLflow" if getattr(error, "recorded_in_mlflow", False) else (
+            "MLflow could not be told"
+        )
         print(
-            f"icemlab: the driver stopped on {type(error).__name__}: {error} (traceback below); the sweep's runs "
-            f"say so in MLflow. Once the cause is fixed, continue with: icemlab run {args.sweep} --resume",
+            f"icemlab: the driver stopped on {type(error).__name__}: {error} (traceback below); {recorded}. "
+            f"Once the cause is fixed, continue with: icemlab run {args.sweep} --resume",
             file=sys.stderr,
         )
         raise
@@ -375,6 +378,8 @@ def _trial_counts(sweep, tracker, plan: set[str] | None = None) -> str:
 
 
 def cmd_status(args) -> int:
+    from orchestrator.tracking import TAG_ERROR, TAG_ERROR_CLASS
+
     uri, tracker = _existing_store(args.tracking_uri)
     if not args.sweep:
         sweeps = tracker.sweeps() if tracker else []
@@ -391,10 +396,9 @@ def cmd_status(args) -> int:
         return 1
     plan = {trial.key for trial in loaded.trials} if loaded else None
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker, plan)}")
-    from orchestrator.tracking import TAG_ERROR, TAG_ERROR_CLASS
-
-    if TAG_ERROR in parent.tags:  # the driver itself stopped on an error
-        print(f"  {parent.tags.get(TAG_ERROR_CLASS, 'error')}: {parent.tags[TAG_ERROR].strip().splitlines()[-1][:300]}")
+    cause = next((line for line in parent.tags.get(TAG_ERROR, "").splitlines() if line.strip()), "")
+    if cause:  # the driver itself stopped on an error
+        print(f"  {parent.tags.get(TAG_ERROR_CLASS, 'error')}: {cause[:300]}")
     metric = _recorded_metric(_recorded_sweep(tracker, parent.run_id))
     children = sorted(tracker.trial_runs(parent.run_id), key=lambda c: c.name)
     # A resume with changed keys leaves the old plan's runs under the parent: the file says which are its own.
@@ -454,7 +458,8 @@ def _trial_time_to_go(tracker, child) -> str:
     if work is None or len(work) != planned:
         work = [1.0] * planned
     by_round = dict(tracker.metric_history(child.run_id, ROUND_SECONDS))  # a round logged twice counts once
-    recent = [index for index in sorted(by_round)[-PACE_ROUNDS:] if 0 <= index < planned]
+    # Rounds expected to take no time (an MBRL trial's round 0 of random episodes) say nothing of the pace.
+    recent = [index for index in sorted(by_round) if 0 <= index < planned and work[index] > 0][-PACE_ROUNDS:]
     recent_work = sum(work[index] for index in recent)
     if recent_work <= 0:
         return ""

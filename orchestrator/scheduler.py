@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import sys
 import time
@@ -129,7 +130,9 @@ class TrialState:
     """Each round's expected wall time relative to the others (Program.round_work); empty: all alike."""
 
     def work_until(self, rounds: float) -> float:
-        """The work of the first ``rounds`` rounds; a fraction counts that share of the next round."""
+        """The work of the first ``rounds`` rounds (at most all of them); a fraction counts that share of the
+        next round."""
+        rounds = min(max(rounds, 0.0), self.total_rounds)
         if not self.round_work:
             return rounds
         whole = min(int(rounds), len(self.round_work))
@@ -147,6 +150,17 @@ class TrialState:
     def progressed(self) -> None:
         """A round completed: the next loss is not part of a crash loop, so its backoff starts over."""
         self.lost = 0
+
+
+def checked_round_work(work: Sequence[float], planned: int) -> tuple[float, ...]:
+    """A program's round weights if there is one finite, non-negative weight per planned round; else none (the
+    rounds count alike), with a warning: a method's mistake must not skew every time to go."""
+    work = tuple(float(w) for w in work)
+    if len(work) == planned and all(math.isfinite(w) and w >= 0 for w in work):
+        return work
+    log.warning("round_work gave %d weights for %d rounds (or a negative one); the rounds count alike", len(work),
+                planned)  # fmt: skip
+    return ()
 
 
 def time_to_go(
@@ -184,7 +198,7 @@ class Attempt:
     progress_ref: Any = None
     rss_mb: float | None = None
     logged_a_round: bool = False
-    """Whether this attempt has reached the logging of a round (the first may repeat a partly logged one)."""
+    """Whether this attempt has logged a round (the first it logs may be one a crash left logged in part)."""
 
 
 class SweepState(NamedTuple):
@@ -410,12 +424,13 @@ class SweepScheduler:
                 if previous is not None and previous.status == FINISHED:
                     continue
                 spec = trial.config.spec()
+                planned = self.program.planned_rounds(spec)
                 state = TrialState(
                     trial,
-                    self.program.planned_rounds(spec),
+                    planned,
                     retries_left=self.sweep.retries,
                     lost_left=self.sweep.max_lost_processes,
-                    round_work=tuple(self.program.round_work(spec, self.counts)),
+                    round_work=checked_round_work(self.program.round_work(spec, self.counts), planned),
                 )
                 if previous is not None:
                     state.run_id = previous.run_id
@@ -433,6 +448,10 @@ class SweepScheduler:
             if parent_id is not None:
                 self._abort(parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
             raise
+        except ResourceError:
+            if parent_id is not None:  # refused after a resume reopened the sweep: nothing of it ran
+                self.tracker.end_sweep(parent_id, KILLED, {})
+            raise
         except Exception as error:
             # The driver itself failed (the tracking store, a round report it could not log, ...): say so in
             # MLflow rather than leave the runs RUNNING; the trials continue with --resume.
@@ -440,6 +459,7 @@ class SweepScheduler:
                 cause = f"the driver stopped: {type(error).__name__}: {error}"
                 try:
                     self._abort(parent_id, DRIVER_ERROR, cause, traceback.format_exc())
+                    error.recorded_in_mlflow = True  # type: ignore[attr-defined]  # read by the CLI's message
                 except Exception as recording:  # the store itself may be what failed
                     log.error("the driver's failure could not be recorded in MLflow: %s", recording)
             raise
@@ -641,7 +661,7 @@ class SweepScheduler:
                 after_a_crash=state.attempts > 1 and not attempt.logged_a_round,
             )
             state.logged_rounds.add(round_report.index)
-        attempt.logged_a_round = True
+            attempt.logged_a_round = True
         if round_report.done:
             # The run ends before the last checkpoint is written: a driver killed in between resumes from the
             # checkpoint before and repeats the last round (logged once), never continues past it.
@@ -735,25 +755,34 @@ class SweepScheduler:
 
     def _abort(self, parent_id: str, kind: str, cause: str, detail: str) -> None:
         """Ctrl-C or a driver error: the runs this session opened and left unfinished end KILLED with the cause
-        (also those waiting out a retry's backoff), the sweep KILLED (FAILED for a driver error); then the
-        running trials' actors are stopped."""
+        (also those waiting out a retry's backoff), the sweep KILLED (FAILED for a driver error).
+
+        The actors stop first (that needs no MLflow: a failing store must not hold the cluster's CPUs through
+        its retries), then each run is recorded on its own, so one refused write does not leave the rest RUNNING;
+        the first error of the store is raised at the end."""
         active = list(self._active)
         waiting = [s for s in self._queue if id(s) in self._launched and all(a.state is not s for a in active)]
-        try:
-            for state in [a.state for a in active] + waiting:
+        for attempt in active:
+            try:
+                self._end_attempt(attempt)
+            except Exception:  # Ray itself may be going down with the same signal
+                pass
+        problems: list[Exception] = []
+        for state in [a.state for a in active] + waiting:
+            try:
                 run = self.tracker.trial_run(state.run_id)
-                if run is None or run.status != RUNNING:
-                    continue
-                self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)
-                self.tracker.end_trial(state.run_id, KILLED)
+                if run is not None and run.status == RUNNING:
+                    self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)
+                    self.tracker.end_trial(state.run_id, KILLED)
+            except Exception as error:  # noqa: BLE001 - the others are still recorded
+                problems.append(error)
+        try:
             if kind == INTERRUPTED:
                 self.tracker.end_sweep(parent_id, KILLED, {}, interrupted=True)
             else:
                 self.tracker.record_failure(parent_id, 0, kind, cause, detail)
                 self.tracker.end_sweep(parent_id, FAILED, {})
-        finally:
-            for attempt in active:
-                try:
-                    self._end_attempt(attempt)
-                except Exception:  # Ray itself may be going down with the same signal
-                    pass
+        except Exception as error:  # noqa: BLE001
+            problems.append(error)
+        if problems:
+            raise problems[0]

@@ -63,7 +63,7 @@ TAG_INTERRUPTED = "icemlab.interrupted"
 TAG_PLANNED_TRIALS = "icemlab.planned_trials"
 """How many trials the sweep file defines (set when the sweep starts or resumes)."""
 TAG_DRIVER = "icemlab.driver"
-"""host:pid of the driver of the sweep's current session (a resume refuses while it runs)."""
+"""host|pid|start time of the driver of the sweep's current session (a resume refuses while it runs)."""
 TAG_SESSION_STARTED = "icemlab.session_started"
 """When the sweep's current session (its start, or its latest resume) began, in seconds since the epoch."""
 TAG_OVERRIDE = "icemlab.override."
@@ -101,21 +101,33 @@ RUNNING = RunStatus.to_string(RunStatus.RUNNING)
 
 
 def this_driver() -> str:
-    """host:pid of this process, as the sweep's run records its driver."""
-    return f"{socket.gethostname()}:{os.getpid()}"
+    """host|pid|start of this process, as the sweep's run records its driver (the start tells a reused pid)."""
+    return f"{socket.gethostname()}|{os.getpid()}|{process_start(os.getpid())}"
+
+
+def process_start(pid: int) -> str | None:
+    """When process ``pid`` started, as an opaque text that stays the same for its life; None if it is gone."""
+    try:  # Linux: field 22 of /proc/PID/stat, in clock ticks since boot (after the command, which may hold spaces)
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[19]
+    except (OSError, IndexError):
+        pass
+    try:  # elsewhere (macOS): ps tells the start time
+        import subprocess
+
+        started = subprocess.run(["ps", "-o", "lstart=", "-p", str(pid)], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return started.stdout.strip() or None
 
 
 def live_driver(recorded: str | None) -> int | None:
-    """The pid of a recorded driver that is an icemlab process still running on this host; None if it is gone,
-    is this process, or runs on another host (whose processes this one cannot see)."""
-    host, _, pid = (recorded or "").rpartition(":")
+    """The pid of a recorded driver still running on this host; None if it is gone (its pid unused or used by a
+    later process), is this process, or runs on another host (whose processes this one cannot see). A check,
+    not a lock: two resumes started in the same second can both pass it."""
+    host, pid, start = ((recorded or "").split("|") + ["", "", ""])[:3]
     if host != socket.gethostname() or not pid.isdigit() or int(pid) == os.getpid():
         return None
-    try:
-        command = Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return None
-    return int(pid) if b"icemlab" in command or b"orchestrator.cli" in command else None  # not a reused pid
+    return int(pid) if start and process_start(int(pid)) == start else None
 
 
 def encode_round_work(work: Sequence[float]) -> str:
@@ -362,8 +374,12 @@ class Tracker:
         return run.info.run_id
 
     def reopen_sweep(self, run_id: str, file_hash: str, planned_trials: int) -> None:
-        """Mark a parent run RUNNING again for a resume."""
+        """Mark a parent run RUNNING again for a resume; an earlier session's driver error is history."""
         self.client.update_run(run_id, status=RUNNING)
+        tags = self.client.get_run(run_id).data.tags
+        for tag in (TAG_ERROR, TAG_ERROR_CLASS):
+            if tag in tags:
+                self.client.delete_tag(run_id, tag)
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)
         self.client.set_tag(run_id, TAG_PLANNED_TRIALS, str(planned_trials))
         self.client.set_tag(run_id, TAG_SESSION_STARTED, f"{time.time():.3f}")
@@ -541,10 +557,6 @@ class Tracker:
             for t, value in enumerate(values)
         ]
         entries += [Metric(key, float(value), now, step) for key, value in metrics.items()]
-        if after_a_crash:
-            keys = {entry.key for entry in entries}
-            written = {(key, m.step) for key in keys for m in self.client.get_metric_history(run_id, key)}
-            entries = [entry for entry in entries if (entry.key, entry.step) not in written]
         if artifacts:
             with tempfile.TemporaryDirectory() as directory:
                 for path, data in artifacts:
@@ -554,6 +566,10 @@ class Tracker:
                     self.client.log_artifact(run_id, str(local), str(Path(path).parent) if "/" in path else None)
         if seconds is not None:
             entries.append(Metric(ROUND_SECONDS, float(seconds), now, index))
+        if after_a_crash:
+            keys = {entry.key for entry in entries}
+            written = {(key, m.step) for key in keys for m in self.client.get_metric_history(run_id, key)}
+            entries = [entry for entry in entries if (entry.key, entry.step) not in written]
         # The marker goes into the last batch: a round counts as logged only once all of it is.
         entries.append(Metric(ROUND_MARKER, float(index), now, index))
         for start in range(0, len(entries), MAX_BATCH):

@@ -51,9 +51,9 @@ def test_a_note_in_a_log_is_a_plain_line():
 
 
 def test_the_eta_weighs_the_rounds_to_go_by_their_work():
-    """A trial resumed after 40 one-episode iterations has done half an iteration's work of its session in
-    30 s, a minute per unit of work; its three frozen rows of 13 episodes each are 39 minutes away, and a trial
-    without recorded work counts its rounds alike."""
+    """A trial resumed after round 0 and 39 one-episode iterations has done half an iteration's work of its
+    session in 30 s, a minute per unit of work; what remains (half of iteration 40, three frozen rows of 13
+    episodes each) is 39.5 minutes away, and a trial without recorded work counts its rounds alike."""
     from orchestrator.scheduler import TrialState, time_to_go
 
     mbrl = TrialState(trial=None, total_rounds=44, round_work=(0.0,) + (1.0,) * 40 + (13.0,) * 3, rounds_done=40)
@@ -63,3 +63,12 @@ def test_the_eta_weighs_the_rounds_to_go_by_their_work():
     assert seconds == 60.0 * (0.5 + 39.0)
     plain = TrialState(trial=None, total_rounds=10, rounds_done=4)
     assert time_to_go([plain], {id(plain): 0.5}, 4.0, elapsed=30.0) == 60.0 * 5.5
+    assert plain.work_until(10.7) == 10.0 and mbrl.work_until(44.2) == 40.0 + 39.0  # never past the last round
+
+
+def test_round_weights_that_do_not_fit_the_rounds_count_them_alike():
+    from orchestrator.scheduler import checked_round_work
+
+    assert checked_round_work([0, 1, 13], 3) == (0.0, 1.0, 13.0)
+    assert checked_round_work([1, 1], 5) == () and checked_round_work([1, -1], 2) == ()
+    assert checked_round_work([1, float("nan")], 2) == ()

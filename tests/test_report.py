@@ -617,8 +617,16 @@ def test_status_weighs_the_rounds_to_go_by_their_recorded_work(tmp_path):
     tracker.set_tags(run_id, {TAG_PLANNED_ROUNDS: "44", TAG_ROUND_WORK: encode_round_work(work)})
     for index in range(41):
         tracker.log_round(run_id, index, index, {}, {}, 0, seconds=300.0 if index == 0 else 60.0)
-    line = cli("status", "loop", cwd=tmp_path).stdout.splitlines()[1]
-    assert "rounds   41/44" in line and line.endswith("about 39 min 00 s to go (3 rounds at the pace of its last 5)")
+    young = tracker.start_trial(parent, "young", "young", {"method": "mbrl", "seed": 1}, {"method": "mbrl"})
+    tracker.set_tags(young, {TAG_PLANNED_ROUNDS: "44", TAG_ROUND_WORK: encode_round_work(work)})
+    for index, seconds in enumerate([600.0, 60.0, 60.0]):  # round 0's random episodes say nothing of the pace
+        tracker.log_round(young, index, index, {}, {}, 0, seconds=seconds)
+    lines = cli("status", "loop", cwd=tmp_path).stdout.splitlines()[1:]
+    line = next(text for text in lines if "#" not in text and " mbrl " in text and "41/44" in text)
+    assert line.endswith("about 39 min 00 s to go (3 rounds at the pace of its last 5)")
+    young_line = next(text for text in lines if " young " in text)
+    # 38 iterations and 3 rows of 13 to go at 60 s each: 77 minutes.
+    assert young_line.endswith("about 1 h 17 min to go (41 rounds at the pace of its last 2)")
 
 
 @pytest.mark.parametrize(

@@ -379,6 +379,27 @@ def test_an_error_of_the_driver_is_recorded_in_mlflow_and_the_sweep_resumes(tmp_
     (child,) = sweep_runs(uri, "store_error")[1]
     assert child.status == FINISHED and [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]
     assert crash_flags == [True, False]  # round 2 may have been written in part; round 3 is new
+    parent = sweep_runs(uri, "store_error")[0]
+    assert parent.status == FINISHED and "icemlab.error" not in parent.tags  # the resumed sweep is not failing
+    assert "driver_error" not in cli("status", str(sweep), cwd=tmp_path).stdout
+
+
+def test_a_driver_error_the_store_cannot_record_still_reaches_the_caller(tmp_path, local_ray):
+    """The store that refused a round also refuses closing the sweep: the caller gets the first error, not the
+    store's second one, and is not told that MLflow knows; the trial's own run is still closed."""
+    sweep = toy_sweep(tmp_path, "store_down")
+    uri = default_tracking_uri(tmp_path)
+    dying = DyingTracker(uri, "log_round", lambda run_id, index, *_, **__: index == 1, OSError("disk full"))
+
+    def store_down(*args, **kwargs):
+        raise RuntimeError("store down")
+
+    dying.end_sweep = store_down
+    with pytest.raises(OSError, match="disk full") as error:
+        SweepScheduler(load_sweep(sweep), dying).run()
+    assert not getattr(error.value, "recorded_in_mlflow", False)
+    (child,) = sweep_runs(uri, "store_down")[1]
+    assert child.status == KILLED and child.error_class == "driver_error"
 
 
 def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
@@ -399,6 +420,27 @@ def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
     runs = {run.run_id: run for run in tracker.trial_runs(parent)}
     assert runs[waiting.run_id].status == KILLED and runs[waiting.run_id].error_class == "interrupted"
     assert runs[untouched.run_id].status == RUNNING  # not this session's to close
+
+
+def test_a_recorded_driver_counts_as_running_only_while_its_process_lives():
+    """The check that refuses a second driver: a live process with the recorded start, not this process, not a
+    later process that got the same pid, not a process on another host."""
+    import socket
+    import subprocess
+
+    from orchestrator.tracking import live_driver, process_start, this_driver
+
+    host = socket.gethostname()
+    other = subprocess.Popen(["sleep", "30"])
+    try:
+        recorded = f"{host}|{other.pid}|{process_start(other.pid)}"
+        assert live_driver(recorded) == other.pid
+        assert live_driver(f"{host}|{other.pid}|{process_start(os.getpid())}") is None  # the pid, used again
+        assert live_driver(f"elsewhere|{other.pid}|{process_start(other.pid)}") is None
+    finally:
+        other.kill()
+        other.wait()
+    assert live_driver(recorded) is None and live_driver(this_driver()) is None and live_driver(None) is None
 
 
 def test_a_reopened_run_gets_the_params_and_files_a_dying_driver_left_unwritten(tmp_path):
@@ -444,6 +486,58 @@ def test_a_round_logged_in_part_before_a_crash_is_completed_without_duplicates(t
     assert tracker.logged_rounds(run_id) == {0}
 
 
+def test_a_rounds_seconds_written_before_a_crash_are_not_written_again(tmp_path):
+    """999 entries and the round's seconds fill the first batch; the marker alone is in the second."""
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("edge", "edge", "hash", "name: edge\n", {}, "dev")
+    run_id = tracker.start_trial(parent, "trial", "trial", {"seed": 0}, {})
+    series = {"step/reward": [0.0] * 998}
+    log_batch, batches = tracker.client.log_batch, []
+
+    def dies_after_one_batch(*args, **kwargs):
+        if batches:
+            raise DriverDied()
+        batches.append(log_batch(*args, **kwargs))
+
+    tracker.client.log_batch = dies_after_one_batch
+    with pytest.raises(DriverDied):
+        tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0, seconds=5.0)
+    tracker.client.log_batch = log_batch
+    tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0, seconds=5.0, after_a_crash=True)
+    assert history(tracker, run_id, "icemlab.round_seconds") == [(0, 5.0)]
+
+
+def test_the_first_round_an_attempt_logs_is_the_one_checked_for_a_partial_log(tmp_path):
+    """A resumed attempt that restored an older checkpoint first reruns rounds logged whole (skipped); the round
+    after them is the one a crash may have left logged in part."""
+    from orchestrator.scheduler import Attempt, TrialState
+    from workers.methods import RoundReport
+
+    class Call:
+        def remote(self, *args):
+            return "ref"
+
+    class Group:
+        runner = type("Runner", (), {"run_round": Call()})()
+
+    sweep = toy_sweep(tmp_path, "partial")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    flags = []
+    log_round = tracker.log_round
+    tracker.log_round = lambda *args, after_a_crash=False, **kwargs: (
+        flags.append(after_a_crash),
+        log_round(*args, after_a_crash=after_a_crash, **kwargs),
+    )
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("partial", "partial", "hash", sweep.read_text(), {}, "dev")
+    state = TrialState(load_sweep(sweep).trials[0], 4, attempts=2, logged_rounds={0, 1}, rounds_done=2)
+    state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    attempt = Attempt(state, Group(), phase="running", round_index=1)
+    for index in (1, 2, 3):
+        scheduler._advance(attempt, (RoundReport(index, {"loss": 1.0}, step=index), b"state", []))
+    assert flags == [True, False]  # round 1 was skipped; round 2 is checked, round 3 is new
+
+
 def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     """Between a round's end and the next poll of the runner, the ETA must not count the finished round's fraction
     (about 1) as progress of the next one: for an MBRL frozen row that is hours early. And a round's checkpoint
@@ -469,6 +563,9 @@ def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", []))
     assert attempt.round_index == 2 and attempt.progress == {}
     assert state.bad_checkpoints == set()  # written anew: a later restore may use it
+    restoring = Attempt(state, Group(), phase="restoring", progress={"fraction": 0.9})  # the lost attempt's last
+    scheduler._advance(restoring, 2)
+    assert restoring.phase == "running" and restoring.round_index == 2 and restoring.progress == {}
     # One unit of work in this session's 60 s: the frozen row's 13 units are 13 minutes away.
     assert time_to_go([state], {id(state): attempt.progress.get("fraction", 0.0)}, 1.0, 60.0) == 13 * 60.0
 
@@ -501,6 +598,7 @@ def test_a_resumed_trials_recoveries_are_numbered_on(tmp_path, local_ray):
     killer.start()
     assert scheduler.run().finished == 1
     killer.join(timeout=5)
+    assert not killer.is_alive()
     (child,) = sweep_runs(uri, "renumber")[1]
     assert history(tracker, child.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0)]
     files = sorted(tracker.list_files(child.run_id, "failures"))
