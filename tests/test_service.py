@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -329,6 +330,33 @@ class DyingTracker(Tracker):
         setattr(self, method, dying)
 
 
+@contextlib.contextmanager
+def dying_after_one_batch(tracker: Tracker):
+    """The driver dies after the first metrics batch it sends (its later batches are never written)."""
+    log_batch, sent = tracker.client.log_batch, []
+
+    def once(*args, **kwargs):
+        if sent:
+            raise DriverDied()
+        sent.append(log_batch(*args, **kwargs))
+
+    tracker.client.log_batch = once
+    try:
+        yield
+    finally:
+        tracker.client.log_batch = log_batch
+
+
+class RunnerlessGroup:
+    """An attempt's actor group whose runner takes calls and never answers: the scheduler's own steps, no Ray."""
+
+    class _Call:
+        def remote(self, *args):
+            return "ref"
+
+    runner = type("Runner", (), {"run_round": _Call()})()
+
+
 def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no_further(tmp_path, local_ray):
     """The driver dies as it closes the finished trial: the resume must not continue past the last round (a
     checkpoint of the last round written before the run ended would make it run a fifth)."""
@@ -468,17 +496,8 @@ def test_a_round_logged_in_part_before_a_crash_is_completed_without_duplicates(t
     parent = tracker.start_sweep("long", "long", "hash", "name: long\n", {}, "dev")
     run_id = tracker.start_trial(parent, "trial", "trial", {"seed": 0}, {})
     series = {"step/reward": list(np.linspace(0.0, 1.0, 1500))}
-    log_batch, batches = tracker.client.log_batch, []
-
-    def dies_after_one_batch(*args, **kwargs):
-        if batches:
-            raise DriverDied()
-        batches.append(log_batch(*args, **kwargs))
-
-    tracker.client.log_batch = dies_after_one_batch
-    with pytest.raises(DriverDied):
+    with dying_after_one_batch(tracker), pytest.raises(DriverDied):
         tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0)
-    tracker.client.log_batch = log_batch
     assert tracker.logged_rounds(run_id) == set()  # the marker is in the batch that was not written
     tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0, after_a_crash=after_a_crash)
     steps = Counter(s for s, _ in history(tracker, run_id, "step/reward"))
@@ -492,17 +511,8 @@ def test_a_rounds_seconds_written_before_a_crash_are_not_written_again(tmp_path)
     parent = tracker.start_sweep("edge", "edge", "hash", "name: edge\n", {}, "dev")
     run_id = tracker.start_trial(parent, "trial", "trial", {"seed": 0}, {})
     series = {"step/reward": [0.0] * 998}
-    log_batch, batches = tracker.client.log_batch, []
-
-    def dies_after_one_batch(*args, **kwargs):
-        if batches:
-            raise DriverDied()
-        batches.append(log_batch(*args, **kwargs))
-
-    tracker.client.log_batch = dies_after_one_batch
-    with pytest.raises(DriverDied):
+    with dying_after_one_batch(tracker), pytest.raises(DriverDied):
         tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0, seconds=5.0)
-    tracker.client.log_batch = log_batch
     tracker.log_round(run_id, 0, 0, {"episode_return": 1.0}, series, 0, seconds=5.0, after_a_crash=True)
     assert history(tracker, run_id, "icemlab.round_seconds") == [(0, 5.0)]
 
@@ -512,13 +522,6 @@ def test_the_first_round_an_attempt_logs_is_the_one_checked_for_a_partial_log(tm
     after them is the one a crash may have left logged in part."""
     from orchestrator.scheduler import Attempt, TrialState
     from workers.methods import RoundReport
-
-    class Call:
-        def remote(self, *args):
-            return "ref"
-
-    class Group:
-        runner = type("Runner", (), {"run_round": Call()})()
 
     sweep = toy_sweep(tmp_path, "partial")
     tracker = Tracker(default_tracking_uri(tmp_path))
@@ -532,7 +535,7 @@ def test_the_first_round_an_attempt_logs_is_the_one_checked_for_a_partial_log(tm
     parent = tracker.start_sweep("partial", "partial", "hash", sweep.read_text(), {}, "dev")
     state = TrialState(load_sweep(sweep).trials[0], 4, attempts=2, logged_rounds={0, 1}, rounds_done=2)
     state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
-    attempt = Attempt(state, Group(), phase="running", round_index=1)
+    attempt = Attempt(state, RunnerlessGroup(), phase="running", round_index=1)
     for index in (1, 2, 3):
         scheduler._advance(attempt, (RoundReport(index, {"loss": 1.0}, step=index), b"state", []))
     assert flags == [True, False]  # round 1 was skipped; round 2 is checked, round 3 is new
@@ -545,13 +548,6 @@ def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     from orchestrator.scheduler import Attempt, TrialState, time_to_go
     from workers.methods import RoundReport
 
-    class Call:
-        def remote(self, *args):
-            return "ref"
-
-    class Group:
-        runner = type("Runner", (), {"run_round": Call()})()
-
     sweep = toy_sweep(tmp_path, "fraction")
     tracker = Tracker(default_tracking_uri(tmp_path))
     scheduler = SweepScheduler(load_sweep(sweep), tracker)
@@ -559,11 +555,13 @@ def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     state = TrialState(load_sweep(sweep).trials[0], 3, round_work=(1.0, 1.0, 13.0), rounds_done=1)
     state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
     state.bad_checkpoints = {1}  # round 1's checkpoint was refused in an earlier attempt
-    attempt = Attempt(state, Group(), phase="running", round_index=1, progress={"fraction": 1.0, "text": "step 10"})
+    finished_round = {"fraction": 1.0, "text": "step 10"}
+    attempt = Attempt(state, RunnerlessGroup(), phase="running", round_index=1, progress=finished_round)
     scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", []))
     assert attempt.round_index == 2 and attempt.progress == {}
     assert state.bad_checkpoints == set()  # written anew: a later restore may use it
-    restoring = Attempt(state, Group(), phase="restoring", progress={"fraction": 0.9})  # the lost attempt's last
+    # The lost attempt's last fraction is not the restored one's.
+    restoring = Attempt(state, RunnerlessGroup(), phase="restoring", progress={"fraction": 0.9})
     scheduler._advance(restoring, 2)
     assert restoring.phase == "running" and restoring.round_index == 2 and restoring.progress == {}
     # One unit of work in this session's 60 s: the frozen row's 13 units are 13 minutes away.
