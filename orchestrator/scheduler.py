@@ -128,6 +128,8 @@ class TrialState:
     """CPUs per unit of work of the trial's latest attempt (from its run on a resume)."""
     round_work: tuple[float, ...] = ()
     """Each round's expected wall time relative to the others (Program.round_work); empty: all alike."""
+    launched_here: bool = False
+    """Whether this driver launched an attempt of the trial (its run is then this driver's to close)."""
 
     def work_until(self, rounds: float) -> float:
         """The work of the first ``rounds`` rounds (at most all of them); a fraction counts that share of the
@@ -313,8 +315,6 @@ class SweepScheduler:
         self._active: list[Attempt] = []
         self._queue: list[TrialState] = []
         """Trials waiting for CPUs or a retry's backoff."""
-        self._launched: set[int] = set()
-        """``id`` of the trial states launched in this session (their runs are this driver's to close)."""
         self.allow_physics_change = allow_physics_change
         self.notice = notice or _print_notice
         self._provenance = provenance.current()
@@ -577,7 +577,7 @@ class SweepScheduler:
     def _launch(self, state: TrialState) -> Attempt:
         trial, config = state.trial, state.trial.config
         state.attempts += 1
-        self._launched.add(id(state))
+        state.launched_here = True
         params = config.flat() | {
             PARAM_THREADS: self._threads,
             "resources.simulation_workers": self.sweep.resources.simulation_workers,
@@ -761,7 +761,7 @@ class SweepScheduler:
         its retries), then each run is recorded on its own, so one refused write does not leave the rest RUNNING;
         the first error of the store is raised at the end."""
         active = list(self._active)
-        waiting = [s for s in self._queue if id(s) in self._launched and all(a.state is not s for a in active)]
+        waiting = [s for s in self._queue if s.launched_here and all(a.state is not s for a in active)]
         for attempt in active:
             try:
                 self._end_attempt(attempt)

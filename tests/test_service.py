@@ -443,7 +443,8 @@ def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
     waiting.run_id = tracker.start_trial(parent, waiting.trial.key, "waiting", {"seed": 0}, {})
     untouched = TrialState(load_sweep(sweep).trials[0], 4, attempts=1)  # from an earlier session, not launched
     untouched.run_id = tracker.start_trial(parent, "earlier", "earlier", {"seed": 0}, {})
-    scheduler._queue, scheduler._launched = [waiting, untouched], {id(waiting)}
+    waiting.launched_here = True  # as _launch marks it (test_a_launched_trial_is_this_drivers_to_close)
+    scheduler._queue = [waiting, untouched]
     scheduler._abort(parent, "interrupted", "interrupted (Ctrl-C)", "")
     runs = {run.run_id: run for run in tracker.trial_runs(parent)}
     assert runs[waiting.run_id].status == KILLED and runs[waiting.run_id].error_class == "interrupted"
@@ -566,6 +567,30 @@ def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     assert restoring.phase == "running" and restoring.round_index == 2 and restoring.progress == {}
     # One unit of work in this session's 60 s: the frozen row's 13 units are 13 minutes away.
     assert time_to_go([state], {id(state): attempt.progress.get("fraction", 0.0)}, 1.0, 60.0) == 13 * 60.0
+
+
+def test_a_launched_trial_is_this_drivers_to_close(tmp_path, monkeypatch):
+    """Launching an attempt marks the trial as this driver's: Ctrl-C or a driver error then closes its run."""
+    import orchestrator.scheduler as scheduler_module
+    from orchestrator.scheduler import TrialState
+
+    class Unplaced:
+        def __init__(self, *args):
+            pass
+
+        def ready(self):
+            return "ref"
+
+    monkeypatch.setattr(scheduler_module, "TrialGroup", Unplaced)
+    sweep = toy_sweep(tmp_path, "launch")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    scheduler._parent_id = tracker.start_sweep("launch", "launch", "hash", sweep.read_text(), {}, "dev")
+    scheduler._threads = 1
+    state = TrialState(load_sweep(sweep).trials[0], 4)
+    assert not state.launched_here
+    attempt = scheduler._launch(state)
+    assert state.launched_here and attempt.phase == "placing" and state.run_id is not None
 
 
 def test_a_resumed_trials_recoveries_are_numbered_on(tmp_path, local_ray):
