@@ -448,10 +448,6 @@ class SweepScheduler:
             if parent_id is not None:
                 self._abort(parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
             raise
-        except ResourceError:
-            if parent_id is not None:  # refused after a resume reopened the sweep: nothing of it ran
-                self.tracker.end_sweep(parent_id, KILLED, {})
-            raise
         except Exception as error:
             # The driver itself failed (the tracking store, a round report it could not log, ...): say so in
             # MLflow rather than leave the runs RUNNING; the trials continue with --resume.
