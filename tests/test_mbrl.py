@@ -246,7 +246,13 @@ def test_an_episode_ends_in_success_a_fall_or_neither(metrics, ending):
 def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
     _, program, reports = tiny_run
     paths = [a.path for r in reports for a in r.artifacts]
-    assert paths[:3] == ["models/model_v002.npz", "models/model_v003.npz", "plots/visited_states.png"]
+    assert paths[:5] == [
+        "models/model_v002.npz",
+        "plots/uncertainty_v002.png",
+        "models/model_v003.npz",
+        "plots/uncertainty_v003.png",
+        "plots/visited_states.png",
+    ]
     artifact = reports[2].artifacts[0]
     (tmp_path / "model.npz").write_bytes(artifact.data)
     model = DynamicsEnsemble.load(tmp_path / "model.npz")  # the one-liner of the README
@@ -257,8 +263,7 @@ def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
 
     for ours, theirs in zip(model.predict(torch.from_numpy(inputs)), reference.predict(torch.from_numpy(inputs))):
         torch.testing.assert_close(ours, theirs, rtol=0, atol=0)
-    png = reports[2].artifacts[1].data
-    assert png.startswith(b"\x89PNG")
+    assert all(a.data.startswith(b"\x89PNG") for a in reports[2].artifacts[1:])
 
 
 def test_checkpoint_round_trip_continues_identically():

@@ -28,8 +28,10 @@ fanned-out episodes (random and frozen ones).
 Artifacts: ``models/model_vNNN.npz`` (weights and normaliser, every
 ``model_every`` iterations and after the last training round) loads with
 ``DynamicsEnsemble.load("model_v012.npz")`` (``from workers.dynamics import
-DynamicsEnsemble``; no pickle involved), and ``plots/visited_states.png`` is
-Fig. 37b/c for tasks with a plane (BridgeMaze).
+DynamicsEnsemble``; no pickle involved). For tasks with a plane (BridgeMaze):
+``plots/uncertainty_vNNN.png`` beside each model, its one-step Var_A and Var_E
+over the plane (workers/dynamics/uncertainty_map.py), and
+``plots/visited_states.png``, Fig. 37b/c.
 
 Choices where the thesis is silent, each a setting: see the field docs of
 :class:`MbrlSettings`, workers/dynamics/ (ensemble, propagation, costs) and
@@ -41,7 +43,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import TYPE_CHECKING, Any, Literal, Optional
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
@@ -68,6 +70,9 @@ from workers.methods.base import (
     located_error,
 )
 from workers.planning.config import PlannerConfig
+
+if TYPE_CHECKING:
+    from workers.dynamics.uncertainty_map import UncertaintyMap
 
 PresetName = Literal["bridge_maze", "noisy_halfcheetah", "small"]
 
@@ -311,13 +316,21 @@ def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
 def _task_map(task: Any, title: str) -> tuple[Any, Any]:
     """(figure, axis) with the task's map drawn in its plane: walkable rectangles, then walls and rims."""
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
 
     figure, axis = plt.subplots(figsize=(7, 4.6))
+    _draw_task_map(axis, task, title, ground="0.85")
+    return figure, axis
+
+
+def _draw_task_map(axis: Any, task: Any, title: str, ground: str | None, layer: int = 0) -> None:
+    """The task's walkable rectangles (filled with ``ground``, or outlined only when None) and walls on ``axis``."""
+    from matplotlib.patches import Rectangle
+
     for (x0, x1), (y0, y1) in getattr(task, "map_rectangles", ()):
-        axis.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor="0.85", edgecolor="0.6", zorder=0))
+        fill = dict(facecolor=ground, edgecolor="0.6") if ground else dict(fill=False, edgecolor="white")
+        axis.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, zorder=layer, **fill))
     for (x0, x1), (y0, y1) in getattr(task, "map_walls", ()):
-        axis.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor="0.35", edgecolor="none", zorder=0))
+        axis.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, facecolor="0.35", edgecolor="none", zorder=layer))
     ranges = getattr(task, "coverage_range", None)
     if ranges is not None:
         axis.set_xlim(*ranges[0])
@@ -326,7 +339,6 @@ def _task_map(task: Any, title: str) -> tuple[Any, Any]:
     axis.set_ylabel("y")
     axis.set_aspect("equal")
     axis.set_title(title)
-    return figure, axis
 
 
 def visited_states_png(xy: np.ndarray, when: np.ndarray, title: str, task: Any) -> bytes:
@@ -338,6 +350,29 @@ def visited_states_png(xy: np.ndarray, when: np.ndarray, title: str, task: Any) 
     order = np.argsort(when, kind="stable")
     points = axis.scatter(xy[order, 0], xy[order, 1], c=when[order], s=3, cmap="viridis", zorder=1)
     figure.colorbar(points, ax=axis, label="iteration first visited (0: random episodes)")
+    figure.tight_layout()
+    return plots.to_png(figure)
+
+
+def uncertainty_map_png(umap: UncertaintyMap, title: str, task: Any) -> bytes:
+    """U(Var_A) and U(Var_E) of one step from each point of the task's plane, on log colour scales: where the
+    model expects noise (what the aleatoric penalty avoids, eq. 26) and where it lacks data (what the epistemic
+    bonus seeks, eq. 27); see workers/dynamics/uncertainty_map.py."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    from workers import plots
+
+    figure, axes = plt.subplots(1, 2, figsize=(13, 4.6))
+    panels = ((umap.aleatoric, "aleatoric U(Var_A), eq. 22"), (umap.epistemic, "epistemic U(Var_E), eq. 24"))
+    for axis, (values, label) in zip(axes, panels):
+        positive = values[values > 0]
+        low = float(positive.min()) if positive.size else 1e-6
+        norm = LogNorm(vmin=low, vmax=max(float(values.max()), low * 10))
+        mesh = axis.pcolormesh(umap.x, umap.y, values.T, shading="nearest", cmap="magma", norm=norm, zorder=0)
+        figure.colorbar(mesh, ax=axis, label="per step")
+        _draw_task_map(axis, task, label, ground=None, layer=1)
+    figure.suptitle(title)
     figure.tight_layout()
     return plots.to_png(figure)
 
@@ -770,11 +805,29 @@ class MbrlProgram(Program):
         artifacts = [
             Artifact(f"models/model_v{self.weights.version:03d}.npz", npz_bytes(self.weights.arrays, self.weights.meta))
         ]
+        figure = self._uncertainty_map_png()
+        if figure is not None:
+            artifacts.append(Artifact(f"plots/uncertainty_v{self.weights.version:03d}.png", figure))
         if last:
             figure = self._visited_states_png()
             if figure is not None:
                 artifacts.append(Artifact("plots/visited_states.png", figure))
         return artifacts
+
+    def _uncertainty_map_png(self) -> bytes | None:
+        """The current model's one-step Var_A and Var_E over the task's plane (tasks with one, e.g. BridgeMaze)."""
+        from workers.dynamics.ensemble import DynamicsEnsemble
+        from workers.dynamics.uncertainty_map import uncertainty_map
+
+        ranges = getattr(self.task, "coverage_range", None)
+        if ranges is None:
+            return None
+        model = DynamicsEnsemble.from_state(self.weights.arrays, self.weights.meta)
+        umap = uncertainty_map(model, self.task, self.settings.razer.settings(self.task.safety_boxes), ranges)
+        if umap is None:
+            return None
+        title = f"{self.trial.task} s{self.trial.seed}, model v{self.weights.version}: {self.task.plane_probe}"
+        return uncertainty_map_png(umap, title, self.task)
 
     def _frozen_paths(self, name: str, outcomes: list) -> list[Artifact]:
         """plots/frozen_<row>.png: where the row's episodes went (tasks with a plane to draw in)."""

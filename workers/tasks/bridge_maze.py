@@ -76,6 +76,10 @@ COVERAGE_RANGE = ((-20.0, 20.0), (-10.0, 15.0))
 """(x range, y range) of the coverage grid (App. D.4.1)."""
 COVERAGE_BINS = 50
 """Bins per axis of the coverage grid (App. D.4.1)."""
+CUBE_HALF_SIZE = 0.25
+"""Half the cube's edge: its centre's height resting on the walkway (z = 0)."""
+PROBE_SPEED = 3.3
+"""Speed along x of the states that stand for the plane's points in maps of the model: half the top speed."""
 
 
 @cache
@@ -237,6 +241,7 @@ class BridgeMaze(ModelBasedTask):
     has_success = True
     map_rectangles = WALKWAY
     coverage_range = COVERAGE_RANGE
+    plane_probe = f"one step moving along +x at {PROBE_SPEED} m/s, pushed on at full force"
     description = "cube over three bridges above lava, wind on the middle one (RAZER, App. D.4)"
 
     @property
@@ -292,3 +297,16 @@ class BridgeMaze(ModelBasedTask):
     def visited_xy(self, observations: np.ndarray) -> np.ndarray:
         """The cube's (x, y): the plane of Fig. 37b/c."""
         return np.asarray(observations)[:, :2]
+
+    def plane_states(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The cube upright on the walkway's height at each (x, y), moving towards the goal at half its top speed
+        and pushed on at full force: a state a plan passes through on its way over a bridge."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        states = np.zeros((len(xy), self.observation_dim))
+        states[:, :2] = xy
+        states[:, 2] = CUBE_HALF_SIZE
+        states[:, 3] = 1.0  # identity quaternion (w, x, y, z)
+        states[:, 7] = PROBE_SPEED
+        actions = np.zeros((len(xy), self.action_dim))
+        actions[:, 0] = 1.0
+        return states, actions

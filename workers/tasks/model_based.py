@@ -60,6 +60,8 @@ class ModelBasedTask(ABC):
     """((x0, x1), (y0, y1)) footprints of walls and rims, drawn over the map rectangles."""
     coverage_range: ClassVar[tuple | None] = None
     """((x0, x1), (y0, y1)) extent of the visited-state plane, if the task has one."""
+    plane_probe: ClassVar[str] = ""
+    """What the states of :meth:`plane_states` are, in a few words (the title of a map of the model)."""
     has_success: ClassVar[bool] = False
     """Whether :meth:`episode_metrics` reports ``success``."""
 
@@ -106,4 +108,9 @@ class ModelBasedTask(ABC):
 
     def visited_xy(self, observations: np.ndarray) -> np.ndarray | None:
         """(n, 2) the plane the visited-state scatter (Fig. 37b/c) is drawn in; None: no such plane."""
+        return None
+
+    def plane_states(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(states (n, d), model-space actions (n, d_a)) that stand for the points (n, 2) of the plane in a map of
+        the model's uncertainty (workers/dynamics/uncertainty_map.py); None: the task has no plane."""
         return None
