@@ -776,7 +776,7 @@ class SweepScheduler:
             if kind == INTERRUPTED:
                 self.tracker.end_sweep(parent_id, KILLED, {}, interrupted=True)
             else:
-                self.tracker.record_failure(parent_id, 0, kind, cause, detail)
+                self.tracker.record_sweep_failure(parent_id, kind, cause, detail)
                 self.tracker.end_sweep(parent_id, FAILED, {})
         except Exception as error:  # noqa: BLE001
             problems.append(error)

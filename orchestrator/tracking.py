@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import socket
+import itertools
 import tempfile
 import time
 from collections.abc import Iterable, Mapping, Sequence
@@ -595,9 +596,17 @@ class Tracker:
         self.client.log_batch(run_id, metrics=[Metric(f"recovered/{kind}", 1.0, _now_ms(), number)])
         self.client.log_text(run_id, f"class: {kind}\ncause: {cause}\n", f"failures/recovery_{number:03d}_{kind}.txt")
 
+    def record_sweep_failure(self, run_id: str, kind: str, cause: str, detail: str) -> None:
+        """:meth:`record_failure` for a sweep's run, numbered after the failures it already records: a driver error
+        of a resumed session is kept beside the earlier sessions' ones."""
+        self.record_failure(run_id, self._failure_files(run_id, "attempt_") + 1, kind, cause, detail)
+
     def recoveries(self, run_id: str) -> int:
         """How many in-place recoveries a trial's run records (the next one is numbered after them)."""
-        return sum(1 for path in self.list_files(run_id, "failures") if path.rsplit("/", 1)[-1].startswith("recovery_"))
+        return self._failure_files(run_id, "recovery_")
+
+    def _failure_files(self, run_id: str, prefix: str) -> int:
+        return sum(1 for path in self.list_files(run_id, "failures") if path.rsplit("/", 1)[-1].startswith(prefix))
 
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
         """Close a trial's run: FINISHED with its summary metrics, or FAILED / KILLED."""
@@ -699,7 +708,8 @@ class Tracker:
 
     def note(self, run_id: str, text: str) -> None:
         """Append a line to the run's notes file (checkpoints skipped, resumes)."""
-        self.client.log_text(run_id, text + "\n", f"notes/{_now_ms()}.txt")
+        # The counter keeps two notes of one millisecond apart; file names still sort by time.
+        self.client.log_text(run_id, text + "\n", f"notes/{_now_ms()}_{next(_NOTE_NUMBERS):06d}.txt")
 
 
 def _param(value: Any) -> str:
@@ -712,6 +722,10 @@ def _param(value: Any) -> str:
 
 def _now_ms() -> int:
     return int(time.time() * 1000)
+
+
+_NOTE_NUMBERS = itertools.count()
+"""Numbers this process's notes (see :meth:`Tracker.note`)."""
 
 
 __all__ = [

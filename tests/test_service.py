@@ -391,6 +391,7 @@ def test_an_error_of_the_driver_is_recorded_in_mlflow_and_the_sweep_resumes(tmp_
     assert "OSError: disk full" in parent.tags["icemlab.error"]
     assert child.status == KILLED and child.error_class == "driver_error" and "disk full" in child.error
     assert any(f.endswith("driver_error.txt") for f in dying.list_files(child.run_id, "failures"))
+    assert dying.list_files(parent.run_id, "failures") == ["failures/attempt_001_driver_error.txt"]
     status = cli("status", str(sweep), cwd=tmp_path).stdout
     assert "driver_error: the driver stopped: OSError: disk full" in status.splitlines()[1]
 
@@ -780,3 +781,23 @@ def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
     assert parent.status == KILLED
     assert children and not [c for c in children if c.status == RUNNING]
     assert any(c.status == KILLED for c in children)
+
+
+def test_each_driver_error_of_a_sweep_is_kept_and_notes_of_one_millisecond_are_too(tmp_path, monkeypatch):
+    """A second session's driver error is recorded beside the first one, not over it; two notes written in the
+    same millisecond are two files."""
+    import orchestrator.tracking as tracking
+
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("errors", "errors", "hash", "name: errors\n", {}, "dev")
+    tracker.record_sweep_failure(parent, "driver_error", "first", "first session")
+    tracker.record_sweep_failure(parent, "driver_error", "second", "second session")
+    files = sorted(tracker.list_files(parent, "failures"))
+    assert files == ["failures/attempt_001_driver_error.txt", "failures/attempt_002_driver_error.txt"]
+    texts = [tracker.download(parent, f, tmp_path / f"copy_{i}").read_text() for i, f in enumerate(files)]
+    assert "first session" in texts[0] and "second session" in texts[1]
+
+    monkeypatch.setattr(tracking, "_now_ms", lambda: 1_700_000_000_000)
+    tracker.note(parent, "one")
+    tracker.note(parent, "two")
+    assert len(tracker.list_files(parent, "notes")) == 2
