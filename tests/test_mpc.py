@@ -86,6 +86,24 @@ def test_runner_refuses_rounds_out_of_order_and_foreign_checkpoints():
         other.restore(b"not a checkpoint")
 
 
+def test_a_checkpoint_other_code_wrote_and_this_code_cannot_load_says_so():
+    """A program state this code cannot read: from other code, the error names both fingerprints and what to do
+    (a code error, not retried into an earlier checkpoint); from this code, the program's own error stands."""
+    from orchestrator.failures import CODE_ERROR, classify
+    from workers.actors import CheckpointFromOtherCodeError
+
+    _, data, _ = ProgramRunner(trial(), {}, 1).run_round(0)
+    tree = checkpoint.from_bytes(data)
+    tree["program"] = {}  # what a program whose state keys were renamed since would find
+    with pytest.raises(KeyError):
+        ProgramRunner(trial(), {}, 1).restore(checkpoint.to_bytes(tree))
+    tree["code"] = "0123456789abcdef"
+    with pytest.raises(CheckpointFromOtherCodeError, match="0123456789abcdef") as error:
+        ProgramRunner(trial(), {}, 1).restore(checkpoint.to_bytes(tree))
+    failure = classify(error.value)
+    assert failure.kind == CODE_ERROR and "resume with the icemlab that wrote it" in failure.cause
+
+
 def test_planning_beats_doing_nothing():
     """iCEM drives the point mass to its goal: far better than zero actions from the same start."""
     task = make_task("point_reach")

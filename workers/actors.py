@@ -67,6 +67,11 @@ class CheckpointMismatchError(ValueError):
     """A checkpoint written by another trial (method, task or seed differ)."""
 
 
+class CheckpointFromOtherCodeError(RuntimeError):
+    """A checkpoint written by other icemlab code that this code's program cannot load (a code error: every
+    attempt with this code fails alike, and an earlier checkpoint of the same code would fail too)."""
+
+
 class ProgramRunner:
     """Runs the rounds of one trial's program.
 
@@ -112,7 +117,19 @@ class ProgramRunner:
         expected = {"method": self.trial.method, "task": self.trial.task, "seed": self.trial.seed}
         if {k: identity.get(k) for k in expected} != expected:
             raise CheckpointMismatchError(f"checkpoint of trial {identity} does not belong to this trial {expected}")
-        self.program.load_state_dict(tree["program"])
+        try:
+            self.program.load_state_dict(tree["program"])
+        except RoleWorkerLost:
+            raise
+        except Exception as error:
+            written_by = tree.get("code")
+            if written_by is None or written_by == code_fingerprint():
+                raise
+            raise CheckpointFromOtherCodeError(
+                f"the checkpoint before round {tree.get('next_round')} was written by other icemlab code "
+                f"(fingerprint {written_by}; this code is {code_fingerprint()}), and this code cannot load it "
+                f"({type(error).__name__}: {error}); resume with the icemlab that wrote it"
+            ) from error
         self.next_round = int(tree["next_round"])
         self._last_state = data
         return self.next_round
