@@ -86,3 +86,52 @@ def test_bridge_maze_probes_the_cube_as_it_rests_on_the_walkway():
     np.testing.assert_allclose(states[0], expected, atol=1e-9)
     assert states[0, 7] > 0 and np.all(actions == [[1.0, 0.0], [1.0, 0.0]])
     np.testing.assert_allclose(states[1, :2], [3.0, -5.5])
+
+
+# ------------------------------------------------------------------ icemlab model
+def bridge_maze_checkpoint(path, obs_dim: int = 10, action_dim: int = 2):
+    model = tiny_model(obs_dim, action_dim)
+    model.weights_version = 7
+    model.save(path, weights_only=True)
+    return path
+
+
+def test_icemlab_model_describes_a_checkpoint_and_draws_its_map(tmp_path):
+    from helpers import cli
+
+    checkpoint = bridge_maze_checkpoint(tmp_path / "model_v007.npz")
+    result = cli("model", str(checkpoint), "--task", "bridge_maze", "--epistemic-terms", "means", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "weights version 7, 5 members x 2 hidden layers of 16" in result.stdout
+    assert (tmp_path / "uncertainty_v007.png").read_bytes().startswith(b"\x89PNG")
+    assert "uncertainty map: uncertainty_v007.png" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("other_task", "task noisy_halfcheetah has a 17-d state and a 6-d action"),
+        ("not_a_checkpoint", "is not an ensemble checkpoint"),
+        ("missing", "no file"),
+        ("ground_truth_task", "is not a task of the mbrl method"),
+        ("unknown_task", "bridge_mace"),
+        ("dims_outside", "--dims must lie in 0..9"),
+    ],
+)
+def test_icemlab_model_refuses_what_it_cannot_draw_and_writes_nothing(case, message, tmp_path, capsys):
+    from orchestrator.cli import EXIT_BAD_INPUT, main
+
+    checkpoint = bridge_maze_checkpoint(tmp_path / "model.npz")
+    (tmp_path / "notes.txt").write_text("not a model")
+    args = {
+        "other_task": [str(checkpoint), "--task", "noisy_halfcheetah"],
+        "not_a_checkpoint": [str(tmp_path / "notes.txt"), "--task", "bridge_maze"],
+        "missing": [str(tmp_path / "nowhere.npz"), "--task", "bridge_maze"],
+        "ground_truth_task": [str(checkpoint), "--task", "point_reach"],
+        "unknown_task": [str(checkpoint), "--task", "bridge_mace"],
+        "dims_outside": [str(checkpoint), "--task", "bridge_maze", "--dims", "3", "10"],
+    }[case]
+    output = tmp_path / "map.png"
+    assert main(["model", *args, "--output", str(output)]) == EXIT_BAD_INPUT
+    assert message in capsys.readouterr().err
+    assert not output.exists()

@@ -377,6 +377,18 @@ def uncertainty_map_png(umap: UncertaintyMap, title: str, task: Any) -> bytes:
     return plots.to_png(figure)
 
 
+def model_uncertainty_png(model: Any, task: Any, razer: RazerSettings, title: str) -> bytes | None:
+    """:func:`uncertainty_map_png` of ``model`` over the task's plane, titled ``title``, the model's version and
+    the probe; None for a task without a plane."""
+    from workers.dynamics.uncertainty_map import uncertainty_map
+
+    ranges = getattr(task, "coverage_range", None)
+    umap = uncertainty_map(model, task, razer, ranges) if ranges is not None else None
+    if umap is None:
+        return None
+    return uncertainty_map_png(umap, f"{title}, model v{model.weights_version}: {task.plane_probe}", task)
+
+
 PATH_COLOURS = {"success": "tab:green", "fall": "tab:red", "neither": "tab:gray"}
 """How a frozen row's plot colours an episode's path, by how the episode ended."""
 
@@ -817,17 +829,10 @@ class MbrlProgram(Program):
     def _uncertainty_map_png(self) -> bytes | None:
         """The current model's one-step Var_A and Var_E over the task's plane (tasks with one, e.g. BridgeMaze)."""
         from workers.dynamics.ensemble import DynamicsEnsemble
-        from workers.dynamics.uncertainty_map import uncertainty_map
 
-        ranges = getattr(self.task, "coverage_range", None)
-        if ranges is None:
-            return None
         model = DynamicsEnsemble.from_state(self.weights.arrays, self.weights.meta)
-        umap = uncertainty_map(model, self.task, self.settings.razer.settings(self.task.safety_boxes), ranges)
-        if umap is None:
-            return None
-        title = f"{self.trial.task} s{self.trial.seed}, model v{self.weights.version}: {self.task.plane_probe}"
-        return uncertainty_map_png(umap, title, self.task)
+        razer = self.settings.razer.settings(self.task.safety_boxes)
+        return model_uncertainty_png(model, self.task, razer, f"{self.trial.task} s{self.trial.seed}")
 
     def _frozen_paths(self, name: str, outcomes: list) -> list[Artifact]:
         """plots/frozen_<row>.png: where the row's episodes went (tasks with a plane to draw in)."""
