@@ -8,6 +8,7 @@ import torch
 
 from workers.tasks.bridge_maze import (
     COVERAGE_BINS,
+    LAYOUTS,
     BridgeMaze,
     bridge_maze_reward,
     coverage_grid,
@@ -52,13 +53,23 @@ LOWER = [(-12, -5.5), (-9, -5.5), (9, -5.5), (13, -5.5)]
 UPPER = [(-12, 9), (-9, 9), (9, 9), (13, 9)]
 MIDDLE = [(-9, 0), (9, 0), (13, 0)]
 INTO_LAVA = [(-9, 0), (-4, 0), (-4, 3)]  # onto the middle bridge, then off its side into the gap above it
-AT_THE_RIM = [(-12, 3), (-4, 3)]  # from the start platform straight at the gap between the middle and upper bridges
+SIDE_ROUTES = {
+    "wide": {"lower": LOWER, "upper": UPPER},
+    "compact": {
+        "lower": [(-12, -4.75), (-9, -4.75), (9, -4.75), (13, -4.75)],
+        "upper": [(-12, 5), (-9, 5), (9, 5), (13, 5)],
+    },
+}
+"""Each layout's routes over its side bridges, along their centre lines."""
+GAP_BETWEEN_MIDDLE_AND_UPPER = {"wide": 3.0, "compact": 2.5}
+"""A y in the lava gap between the middle and the upper bridge of each layout."""
 
 
-@pytest.mark.parametrize("route", [LOWER, UPPER], ids=["lower", "upper"])
-def test_goal_is_reachable_by_a_scripted_controller(route):
-    task = BridgeMaze()
-    observations, rewards, infos, terminated = run(task, waypoint_controller(route))
+@pytest.mark.parametrize("bridge", ["lower", "upper"])
+@pytest.mark.parametrize("layout", ["wide", "compact"])
+def test_goal_is_reachable_by_a_scripted_controller(layout, bridge):
+    task = BridgeMaze(layout=layout)
+    observations, rewards, infos, terminated = run(task, waypoint_controller(SIDE_ROUTES[layout][bridge]))
     metrics = task.episode_metrics(observations, rewards, infos)
     assert metrics["success"] == 1.0 and metrics["failure"] == 0.0 and not terminated
     assert observations.shape == (task.episode_length + 1, 10)
@@ -101,12 +112,14 @@ def test_a_fall_into_the_lava_ends_the_episode():
     assert metrics["failure"] == 1.0 and metrics["success"] == 0.0
 
 
-def test_the_platform_rims_leave_the_bridges_as_the_only_way_to_the_lava():
+@pytest.mark.parametrize("layout", ["wide", "compact"])
+def test_the_platform_rims_leave_the_bridges_as_the_only_way_to_the_lava(layout):
     """Driven at speed at the gap between two bridges, the cube stops at the start platform's rim."""
-    task = BridgeMaze(episode_length=60)
-    observations, _, infos, terminated = run(task, waypoint_controller(AT_THE_RIM))
+    task = BridgeMaze(episode_length=60, layout=layout)
+    gap = GAP_BETWEEN_MIDDLE_AND_UPPER[layout]
+    observations, _, infos, terminated = run(task, waypoint_controller([(-12, gap), (-4, gap)]))
     assert not terminated and not any(info["fell"] for info in infos)
-    assert np.all(on_walkway(observations[:, 0], observations[:, 1]))
+    assert np.all(on_walkway(observations[:, 0], observations[:, 1], LAYOUTS[layout].walkway))
     assert -8.6 < observations[-1, 0] < -8.0 and observations[:, 7].max() > 4.0  # hit at speed
 
 
@@ -136,9 +149,10 @@ def test_without_termination_the_fall_costs_minus_one_per_step():
     assert fallen[-1] and np.all(rewards[fallen] == -1.0)
 
 
-def test_wind_only_acts_on_the_middle_bridge():
-    task = BridgeMaze(wind_max=30.0)
-    for route in (MIDDLE, LOWER, UPPER):
+@pytest.mark.parametrize("layout", ["wide", "compact"])
+def test_wind_only_acts_on_the_middle_bridge(layout):
+    task = BridgeMaze(wind_max=30.0, layout=layout)
+    for route in (MIDDLE, *SIDE_ROUTES[layout].values()):
         observations, _, infos, _ = run(task, waypoint_controller(route), seed=1)
         before = observations[:-1]
         windy = np.array([info["wind_applied"] > 0 for info in infos])
@@ -201,12 +215,38 @@ def test_walkway_geometry():
     assert on_walkway(-12, 0) and on_walkway(0, 0) and on_walkway(0, -5.5) and on_walkway(0, 9) and on_walkway(12, 0)
     assert not on_walkway(0, 3) and not on_walkway(0, -3) and not on_walkway(0, 6) and not on_walkway(18, 0)
     assert in_wind_region(0, 3) and not in_wind_region(0, -5.5) and not in_wind_region(9, 0)
+    compact = LAYOUTS["compact"].walkway
+    assert all(on_walkway(0, y, compact) for y in (-4.75, 0, 5)) and on_walkway(-12, 7, compact)
+    assert not any(on_walkway(0, y, compact) for y in (-3, 2.5, 9)) and not on_walkway(-12, 9, compact)
+    # Both side bridges lie outside the wind region of App. D.4 in both layouts.
+    for layout in LAYOUTS.values():
+        for (x0, x1), (y0, y1) in layout.walkway[3:]:
+            assert not in_wind_region(0, y0) and not in_wind_region(0, y1)
 
 
-def test_the_maps_walls_are_the_xmls_walls_and_rims():
-    walls = BridgeMaze().map_walls
+def test_the_compact_layout_moves_the_maze_and_keeps_the_physics():
+    """The two XML files differ in where the platforms, bridges, walls and rims are, nothing else."""
+    import mujoco
+
+    wide, compact = (mujoco.MjModel.from_xml_path(str(layout.xml)) for layout in LAYOUTS.values())
+    assert wide.opt.timestep == compact.opt.timestep
+    for field in ("body_mass", "body_inertia", "dof_damping", "actuator_gear", "actuator_ctrlrange", "body_pos"):
+        np.testing.assert_array_equal(getattr(wide, field), getattr(compact, field), err_msg=field)
+    names = [[m.geom(i).name for i in range(m.ngeom)] for m in (wide, compact)]
+    assert names[0] == names[1]
+    for field in ("geom_friction", "geom_condim", "geom_contype", "geom_conaffinity", "geom_type"):
+        np.testing.assert_array_equal(getattr(wide, field), getattr(compact, field), err_msg=field)
+    moved = {names[0][i] for i in range(wide.ngeom) if not np.allclose(wide.geom_pos[i], compact.geom_pos[i])}
+    assert "cube" not in moved and "walkway" not in moved and {"bridge_lower", "bridge_upper"} <= moved
+
+
+@pytest.mark.parametrize("layout, rim", [("wide", ((-8.2, -8.0), (1.0, 8.0))), ("compact", ((-8.2, -8.0), (1.0, 4.0)))])
+def test_the_maps_walls_are_the_xmls_walls_and_rims(layout, rim):
+    task = BridgeMaze(layout=layout)
+    walls = task.map_walls
     assert len(walls) == 16  # two walls along the upper bridge, 3 outer and 4 inner rims per platform
-    assert ((-8.2, -8.0), (1.0, 8.0)) in [tuple(tuple(round(v, 6) for v in r) for r in w) for w in walls]
+    assert rim in [tuple(tuple(round(v, 6) for v in r) for r in w) for w in walls]  # between middle and upper
+    assert task.map_rectangles == LAYOUTS[layout].walkway
 
 
 def test_coverage_grid():

@@ -16,7 +16,13 @@ Chosen here, because the thesis gives none of it:
   bridges over x in [-8, 8]: middle y in [-1, 1], lower y in [-6.25, -4.75],
   upper y in [8, 10] between walls. The cube (0.5 m, 1 kg) starts at (-12, 0).
   Rims line every platform edge except where a bridge joins it, so the cube
-  reaches the lava only from a bridge (the XML says why).
+  reaches the lava only from a bridge (the XML says why). That is the ``wide``
+  layout (the default); the ``compact`` one (bridge_maze_compact.xml, option
+  ``layout``) moves the side bridges next to the wind region, lower y in
+  [-5.5, -4], upper y in [4, 6], platforms y in [-7, 7.5], so that each side
+  bridge's entrance is about 6 m from the start, within one plan's reach (Table
+  15's 30 steps cover at most 10 m); in the wide layout the upper bridge's
+  entrance is 9 m to the side, and a plan sees no progress in heading there.
 * Falling: the cube loses the walkway once its centre of mass is over lava
   (the walkway is one plane whose contact is switched off; see the XML for
   why) and drops to the lava plane at z = -2. A fall is z < -1.5 (eq. 36).
@@ -40,7 +46,7 @@ from __future__ import annotations
 
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
 
 import gymnasium as gym
 import mujoco
@@ -57,6 +63,7 @@ if TYPE_CHECKING:
 
 ENV_ID = "icemlab/BridgeMaze-v0"
 MODEL_PATH = Path(__file__).parent / "assets" / "bridge_maze.xml"
+COMPACT_MODEL_PATH = Path(__file__).parent / "assets" / "bridge_maze_compact.xml"
 
 GOAL_X = 12.0
 """s_0* of eq. 36: the goal line."""
@@ -71,7 +78,28 @@ WALKWAY = (
     ((-8.0, 8.0), (-6.25, -4.75)),  # lower bridge (no walls)
     ((-8.0, 8.0), (8.0, 10.0)),  # upper bridge (walls)
 )
-"""Rectangles (x range, y range) of solid ground, as drawn in the XML."""
+"""Rectangles (x range, y range) of solid ground of the wide layout, as drawn in bridge_maze.xml."""
+COMPACT_WALKWAY = (
+    ((-16.0, -8.0), (-7.0, 7.5)),  # start platform
+    ((8.0, 16.0), (-7.0, 7.5)),  # goal platform
+    ((-8.0, 8.0), (-1.0, 1.0)),  # middle bridge
+    ((-8.0, 8.0), (-5.5, -4.0)),  # lower bridge (no walls)
+    ((-8.0, 8.0), (4.0, 6.0)),  # upper bridge (walls)
+)
+"""Rectangles of solid ground of the compact layout, as drawn in bridge_maze_compact.xml."""
+
+
+class Layout(NamedTuple):
+    """Where the bridges are: the MuJoCo model and its solid ground (the wind region is the thesis's in both)."""
+
+    xml: Path
+    walkway: tuple[tuple[tuple[float, float], tuple[float, float]], ...]
+
+
+LAYOUTS = {"wide": Layout(MODEL_PATH, WALKWAY), "compact": Layout(COMPACT_MODEL_PATH, COMPACT_WALKWAY)}
+"""``wide``: the side bridges far out (the upper one's entrance 9 m to the side of the start); ``compact``: both
+side bridges' entrances within one plan's reach of the start (see the XML files)."""
+LayoutName = Literal["wide", "compact"]
 COVERAGE_RANGE = ((-20.0, 20.0), (-10.0, 15.0))
 """(x range, y range) of the coverage grid (App. D.4.1)."""
 COVERAGE_BINS = 50
@@ -83,9 +111,9 @@ PROBE_SPEED = 3.3
 
 
 @cache
-def wall_footprints() -> tuple[tuple[tuple[float, float], tuple[float, float]], ...]:
+def wall_footprints(xml: Path = MODEL_PATH) -> tuple[tuple[tuple[float, float], tuple[float, float]], ...]:
     """((x0, x1), (y0, y1)) of every wall and rim of the XML (boxes the cube collides with), for maps."""
-    model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+    model = mujoco.MjModel.from_xml_path(str(xml))
     walls = []
     for geom in range(model.ngeom):
         static = model.geom_bodyid[geom] == 0  # not the cube
@@ -95,11 +123,11 @@ def wall_footprints() -> tuple[tuple[tuple[float, float], tuple[float, float]], 
     return tuple(walls)
 
 
-def on_walkway(x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
-    """Whether points (x, y) lie over solid ground (not lava)."""
+def on_walkway(x: np.ndarray | float, y: np.ndarray | float, walkway=WALKWAY) -> np.ndarray:
+    """Whether points (x, y) lie over solid ground (not lava) of ``walkway`` (a layout's rectangles)."""
     x, y = np.asarray(x), np.asarray(y)
     inside = np.zeros(np.broadcast(x, y).shape, dtype=bool)
-    for (x0, x1), (y0, y1) in WALKWAY:
+    for (x0, x1), (y0, y1) in walkway:
         inside |= (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
     return inside
 
@@ -140,13 +168,22 @@ class BridgeMazeEnv(MujocoEnv):
         wind_max: f_max, the largest wind force in newtons (amplitude ~ U(0, f_max)).
         wind_period: environment steps between wind redraws.
         terminate_on_fall: end the episode when the cube falls (else -1 per step until the time limit).
+        layout: where the bridges are (:data:`LAYOUTS`).
     """
 
     metadata = {"render_modes": ["human", "rgb_array", "depth_array"], "render_fps": 20}
 
-    def __init__(self, wind_max: float = 30.0, wind_period: int = 5, terminate_on_fall: bool = True, **kwargs):
+    def __init__(
+        self,
+        wind_max: float = 30.0,
+        wind_period: int = 5,
+        terminate_on_fall: bool = True,
+        layout: LayoutName = "wide",
+        **kwargs,
+    ):
         observation_space = Box(-np.inf, np.inf, shape=(10,), dtype=np.float64)
-        super().__init__(str(MODEL_PATH), frame_skip=25, observation_space=observation_space, **kwargs)
+        self.walkway = LAYOUTS[layout].walkway
+        super().__init__(str(LAYOUTS[layout].xml), frame_skip=25, observation_space=observation_space, **kwargs)
         if wind_max < 0 or wind_period < 1:
             raise ValueError("wind_max must be >= 0 and wind_period >= 1")
         self.wind_max, self.wind_period, self.terminate_on_fall = wind_max, wind_period, terminate_on_fall
@@ -174,7 +211,7 @@ class BridgeMazeEnv(MujocoEnv):
         wind_applied = 0.0
         for _ in range(self.frame_skip):
             x, y, z = self.data.qpos[:3]
-            if not self.fell and (not on_walkway(x, y) or z < -0.1):
+            if not self.fell and (not on_walkway(x, y, self.walkway) or z < -0.1):
                 # Over lava (or already below the surface): the walkway no longer carries the cube.
                 self.fell = True
                 self._set_walkway_contact(False)
@@ -224,12 +261,15 @@ class BridgeMazeOptions(TaskOptions):
     """Environment steps per episode."""
     terminate_on_fall: bool = True
     """End the episode when the cube falls into the lava (else -1 per step until the time limit, eq. 36)."""
+    layout: LayoutName = "wide"
+    """Where the bridges are: ``wide`` (the upper bridge's entrance 9 m to the side of the start, beyond a plan's
+    reach) or ``compact`` (both side bridges' entrances about 6 m from the start); see workers/tasks/assets/."""
 
 
 class BridgeMaze(ModelBasedTask):
     """BridgeMaze as a chapter-5 task (see the module docstring for every choice).
 
-    Options (:class:`BridgeMazeOptions`): wind_max, wind_period, episode_length, terminate_on_fall.
+    Options (:class:`BridgeMazeOptions`): wind_max, wind_period, episode_length, terminate_on_fall, layout.
     """
 
     Options = BridgeMazeOptions
@@ -239,14 +279,17 @@ class BridgeMaze(ModelBasedTask):
     ensemble_preset = "bridge_maze"
     colored_noise_beta = 2.0  # Table 15
     has_success = True
-    map_rectangles = WALKWAY
     coverage_range = COVERAGE_RANGE
     plane_probe = f"one step moving along +x at {PROBE_SPEED} m/s, pushed on at full force"
     description = "cube over three bridges above lava, wind on the middle one (RAZER, App. D.4)"
 
     @property
+    def map_rectangles(self) -> tuple:
+        return LAYOUTS[self.options.layout].walkway
+
+    @property
     def map_walls(self) -> tuple:  # read from the XML when a map is drawn, not at import
-        return wall_footprints()
+        return wall_footprints(LAYOUTS[self.options.layout].xml)
 
     def __init__(self, **options: Any):
         super().__init__(**options)
@@ -261,6 +304,7 @@ class BridgeMaze(ModelBasedTask):
             wind_max=self.wind_max,
             wind_period=self.wind_period,
             terminate_on_fall=self.terminate_on_fall,
+            layout=self.options.layout,
         )
 
     def planning_cost(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
