@@ -133,10 +133,9 @@ def test_killed_relabel_worker_loses_and_duplicates_no_labels(tmp_path, local_ra
 
     def kill_mid_relabeling():
         def relabeling():
-            active = scheduler._active
-            if active and "relabel" in str(active[0].progress.get("text", "")):
-                return relabel_processes()
-            return None
+            # A worker titled ray::RelabelWorker.relabel is inside a call; the phase's progress line may lag
+            # behind it (it is polled), and on a busy machine a short phase may be over before the line says so.
+            return relabel_processes() if scheduler._active else None
 
         (pid, *_) = wait_for(relabeling, timeout=180, interval=0.02, what="a relabeling call under way")
         os.kill(pid, signal.SIGKILL)
