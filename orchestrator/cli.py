@@ -570,7 +570,11 @@ def cmd_report(args) -> int:
     output = args.output or Path("reports") / name
     histories = report_histories(tracker, runs, program) if program else None
     written = report.write_files(summary, output, histories)
+    results = [report.result_from_run(run) for run in runs]
+    copied = report.copy_trial_plots(tracker, results, {run.run_id: run.name for run in runs}, output)
     print(f"\nwrote {', '.join(str(p) for p in written)}", file=sys.stderr)
+    if copied:
+        print(f"copied {len(copied)} plot(s) of the trials' runs to {output / 'trials'}", file=sys.stderr)
     return 0
 
 

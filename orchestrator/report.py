@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import shutil
+import tempfile
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -596,6 +599,30 @@ def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str]
         axis.legend(fontsize=8)
     figure.tight_layout()
     return figure
+
+
+def copy_trial_plots(tracker: Any, results: Sequence[TrialResult], names: dict[str, str], directory: Path) -> list[Path]:
+    """Each trial's plots its method picks (:meth:`Program.report_plots`) into ``directory/trials/<run name>/``.
+
+    Args:
+        tracker: reads the runs' artifacts (list_files, download).
+        results: the finished trials.
+        names: run id -> the run's name (the folder, with '/' and '#' made file-name safe).
+    """
+    copied = []
+    for result in results:
+        program = METHODS.get(result.method)
+        chosen = program.report_plots(tracker.list_files(result.run_id, "plots")) if program else []
+        if not chosen:
+            continue
+        folder = directory / "trials" / re.sub(r"[^A-Za-z0-9._=-]+", "_", names.get(result.run_id, result.run_id))
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory() as scratch:
+            for path in chosen:
+                target = folder / Path(path).name
+                shutil.move(str(tracker.download(result.run_id, path, scratch)), target)
+                copied.append(target)
+    return copied
 
 
 def write_files(summary: Summary, directory: Path, histories: Histories | None = None) -> list[Path]:

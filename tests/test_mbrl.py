@@ -243,6 +243,24 @@ def test_an_episode_ends_in_success_a_fall_or_neither(metrics, ending):
     assert episode_ending(metrics) == ending
 
 
+def test_a_report_copies_the_visited_states_the_frozen_paths_and_the_newest_uncertainty_map():
+    files = [
+        "plots/uncertainty_v011.png",
+        "plots/frozen_pets.png",
+        "plots/uncertainty_v041.png",
+        "plots/visited_states.png",
+        "plots/uncertainty_v021.png",
+        "plots/frozen_razer_wA_0.5.png",
+        "plots/scratch.png",
+    ]
+    assert MbrlProgram.report_plots(files) == [
+        "plots/frozen_pets.png",
+        "plots/frozen_razer_wA_0.5.png",
+        "plots/visited_states.png",
+        "plots/uncertainty_v041.png",
+    ]
+
+
 def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
     _, program, reports = tiny_run
     paths = [a.path for r in reports for a in r.artifacts]
@@ -544,6 +562,11 @@ def test_smoke_sweep_runs_through_the_cli(tmp_path):
     assert "frozen/pets/success_rate" in child.metrics and "final_coverage" in child.metrics
     assert {"models", "plots", "checkpoints"} <= set(tracker.list_files(child.run_id))
     assert "frozen_success.png" in tracker.list_files(parent.run_id)
+    report = cli("report", str(ROOT / "sweeps/smoke/mbrl.yaml"), "--output", "out", cwd=tmp_path, timeout=300)
+    assert report.returncode == 0, report.stderr
+    (folder,) = (tmp_path / "out" / "trials").iterdir()
+    copied = sorted(p.name for p in folder.iterdir())
+    assert "visited_states.png" in copied and any(name.startswith("uncertainty_v") for name in copied)
 
 
 # ------------------------------------------------- service faults (slow)

@@ -683,3 +683,31 @@ def test_status_tells_a_running_sweeps_time_to_go_at_its_sessions_pace(tmp_path)
     assert "about 20 min" in status and "to go at this session's pace (1 finished in 10 min" in status
     tracker.end_sweep(parent, "KILLED", {})
     assert "to go" not in cli("status", str(sweep), cwd=tmp_path).stdout  # a stopped sweep is not on its way
+
+
+def test_a_report_copies_each_trials_chosen_plots_into_a_folder_named_after_its_run(tmp_path):
+    """The method picks the files (MbrlProgram.report_plots); a method that picks none gets no folder."""
+    from orchestrator.tracking import TrialRun
+
+    class Store:
+        files = {"mbrl": ["plots/visited_states.png", "plots/uncertainty_v003.png", "plots/uncertainty_v011.png"]}
+
+        def list_files(self, run_id, path):
+            assert path == "plots"
+            return self.files.get(run_id, ["plots/anything.png"])
+
+        def download(self, run_id, path, directory):  # as MLflow: the file under the directory, its path returned
+            target = Path(directory) / path
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(f"{run_id}:{path}")
+            return target
+
+    params = {"method": "mbrl", "task": "bridge_maze", "seed": "0"}
+    mbrl = report.result_from_run(TrialRun("mbrl", "k1", FINISHED, "bridge_maze/pets/s0#ab12", params, {}, {}))
+    mpc = report.result_from_run(report_run("icem", 1.0))
+    names = {"mbrl": "bridge_maze/pets/s0#ab12", "id": "point_reach/icem/s0#cd34"}
+    copied = report.copy_trial_plots(Store(), [mbrl, mpc], names, tmp_path)
+    folder = tmp_path / "trials" / "bridge_maze_pets_s0_ab12"
+    assert sorted(copied) == [folder / "uncertainty_v011.png", folder / "visited_states.png"]
+    assert (folder / "uncertainty_v011.png").read_text() == "mbrl:plots/uncertainty_v011.png"
+    assert sorted(p.name for p in (tmp_path / "trials").iterdir()) == ["bridge_maze_pets_s0_ab12"]

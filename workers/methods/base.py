@@ -226,6 +226,12 @@ class Program(ABC):
     """Metrics that reports draw as curves against their step, one line per configuration (mean over seeds)."""
     curve_step: ClassVar[str] = "step"
     """What the step of those curves counts (the reports' x-axis label)."""
+
+    @classmethod
+    def report_plots(cls, files: list[str]) -> list[str]:
+        """Which of a finished trial's plot artifacts (paths under ``plots/``) a report copies next to its own
+        figures, so that one folder shows each trial's pictures; none by default."""
+        return []
     paired_episodes: ClassVar[bool] = False
     """Whether episode i of a trial starts alike (state, layout, random streams) in every configuration run with
     the trial's seed, and logs each headline metric per episode at step i: reports then compare a variant with

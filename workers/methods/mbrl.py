@@ -437,6 +437,14 @@ class MbrlProgram(Program):
     curve_step = "MBRL iteration (0: random episodes)"
     """Training rounds log at step = iteration; coverage against it is Fig. 37a."""
 
+    @classmethod
+    def report_plots(cls, files: list[str]) -> list[str]:
+        """The visited states (Fig. 37b/c), the frozen rows' paths and the final model's uncertainty map."""
+        names = sorted(files)
+        maps = [f for f in names if Path(f).name.startswith("uncertainty_v")]
+        kept = [f for f in names if Path(f).name == "visited_states.png" or Path(f).name.startswith("frozen_")]
+        return kept + maps[-1:]
+
     settings: MbrlSettings
 
     # --------------------------------------------------------- declaration
