@@ -601,7 +601,9 @@ def curves_figure(summary: Summary, histories: Histories, metrics: Iterable[str]
     return figure
 
 
-def copy_trial_plots(tracker: Any, results: Sequence[TrialResult], names: dict[str, str], directory: Path) -> list[Path]:
+def copy_trial_plots(
+    tracker: Any, results: Sequence[TrialResult], names: dict[str, str], directory: Path
+) -> list[Path]:
     """Each trial's plots its method picks (:meth:`Program.report_plots`) into ``directory/trials/<run name>/``.
 
     Args:
