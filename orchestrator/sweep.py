@@ -268,6 +268,7 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "contact_margin": "sum",
     "best_from": "step",
     "layout": "wide",
+    "unit_quaternion": False,
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name,
 at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a

@@ -265,3 +265,24 @@ def test_success_needs_the_goal_without_a_fall():
     observations[3, 2] = -1.6  # went back and fell into the lava after reaching the goal
     metrics = task.episode_metrics(observations, np.zeros(3), [{}] * 3)
     assert metrics["success"] == 0.0 and metrics["failure"] == 1.0
+
+
+@pytest.mark.parametrize("unit_quaternion", [True, False])
+def test_predicted_states_get_a_unit_quaternion_with_w_non_negative(unit_quaternion):
+    task = BridgeMaze(unit_quaternion=unit_quaternion)
+    states = torch.randn(4, 6, 10)
+    states[0, 0, 3:7] = torch.tensor([-0.9, 0.1, 0.0, 0.2])  # w < 0: the same rotation as its negative
+    projected = task.project_states(states)
+    if not unit_quaternion:
+        assert torch.equal(projected, states)
+        return
+    quaternion = projected[..., 3:7]
+    torch.testing.assert_close(quaternion.norm(dim=-1), torch.ones(4, 6))
+    assert (quaternion[..., 0] >= 0).all()
+    # The same rotation: parallel to the input, up to the sign that makes w >= 0.
+    raw = states[..., 3:7]
+    cosine = (quaternion * raw).sum(-1) / raw.norm(dim=-1)
+    torch.testing.assert_close(cosine.abs(), torch.ones(4, 6))
+    torch.testing.assert_close(projected[0, 0, 3:7], torch.tensor([0.9, -0.1, 0.0, -0.2]) / 0.86**0.5)
+    # Position and velocity are left alone.
+    assert torch.equal(projected[..., :3], states[..., :3]) and torch.equal(projected[..., 7:], states[..., 7:])

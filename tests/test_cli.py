@@ -220,7 +220,11 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
             "razer_bridge_maze",
             "d52a4c09b582765a",
             "df252c548e89626c",
-            {"model": {"keep_function": False}, "planner": {"noise_release": "2.1"}},
+            {
+                "model": {"keep_function": False},
+                "planner": {"noise_release": "2.1"},
+                "task_options": {"unit_quaternion": False},
+            },
         ),
         # Pins release "2.1", the release of the trials it compares with: its keys are those of the stored runs.
         ("relocate_contact_margin", "336241e8e1476ee8", "d77398c6ac6c00e9", {}),

@@ -599,3 +599,38 @@ def test_propagated_states_stay_in_the_widened_data_range():
     unclamped = tiny_model(epochs=1, state_margin=None)
     unclamped.train(data)
     assert torch.isinf(unclamped.net.state_high).all()  # None: no clamp
+
+
+@pytest.mark.parametrize("mean_propagation", ["per_member", "shared"])
+def test_the_tasks_projection_moves_every_particle_and_mean_state(mean_propagation):
+    """project (a task's project_states) is applied after each step, to the particles and the mean states."""
+    model = tiny_model()
+    start = torch.tensor([0.5, -0.5, 1.0])
+
+    def onto_plane(states):  # the states' first dimension is pinned to 0
+        return torch.cat([torch.zeros_like(states[..., :1]), states[..., 1:]], dim=-1)
+
+    kwargs = dict(particles=5, mean_propagation=mean_propagation, generator=torch.Generator().manual_seed(0))
+    free = petsus_propagate(model, start, torch.zeros(3, 6, 2), **kwargs)
+    kwargs["generator"] = torch.Generator().manual_seed(0)
+    projected = petsus_propagate(model, start, torch.zeros(3, 6, 2), project=onto_plane, **kwargs)
+    assert (free.particles[..., 0] != 0).all() and (free.means[..., 0] != 0).all()
+    assert (projected.particles[..., 0] == 0).all() and (projected.means[..., 0] == 0).all()
+    # Later steps start from the projected states: the other dimensions differ from the free rollout's too.
+    assert not torch.allclose(projected.particles[..., -1, 1:], free.particles[..., -1, 1:])
+
+
+def test_model_episodes_plan_with_the_tasks_projection(monkeypatch):
+    from workers.dynamics.episodes import run_model_episode
+    from workers.planning import PlannerConfig
+    from workers.tasks.bridge_maze import BridgeMaze
+
+    task = BridgeMaze(episode_length=2)
+    seen = []
+    unit = task.project_states
+    monkeypatch.setattr(task, "project_states", lambda states: seen.append(states.shape) or unit(states))
+    model = tiny_model(task.observation_dim, task.action_dim)
+    config = PlannerConfig(budget=10, elites=3, horizon=4).resolved(task_beta=task.colored_noise_beta)
+    outcome = run_model_episode(task, task.make_env(), model, config, RazerSettings.pets(), particles=5, seed=0)
+    assert outcome.metrics["steps"] == 2
+    assert seen and all(shape[-1] == task.observation_dim for shape in seen)

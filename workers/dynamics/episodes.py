@@ -103,7 +103,9 @@ def run_model_episode(
     """One MPC episode of ``task`` in ``env`` planned on the ensemble ``model`` (Alg. 5)."""
     from workers.dynamics.evaluator import EnsembleEvaluator
 
-    evaluator = EnsembleEvaluator(model, task.planning_cost, razer, particles=particles, seed=seed)
+    evaluator = EnsembleEvaluator(
+        model, task.planning_cost, razer, particles=particles, seed=seed, project=task.project_states
+    )
     planner = CEMPlanner(planner_config, task.action_dim, seed=seed)
     observation, _ = env.reset(seed=seed)
     observation = np.asarray(observation, dtype=np.float64)

@@ -35,6 +35,7 @@ class EnsembleEvaluator:
         particles: P, TS1 particles per sequence.
         seed: seeds the torch generator of particle noise and TS1 assignment; the same seed and the
             same calls give the same costs.
+        project: moves predicted states onto the task's state set (a task's ``project_states``); None: no move.
     """
 
     def __init__(
@@ -44,8 +45,10 @@ class EnsembleEvaluator:
         settings: RazerSettings | None = None,
         particles: int = DEFAULT_PARTICLES,
         seed: int = 0,
+        project: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ):
         self.model = model
+        self.project = project
         self.task_cost = task_cost
         self.settings = settings or RazerSettings.pets()
         if particles < 1:
@@ -79,6 +82,7 @@ class EnsembleEvaluator:
                 mean_propagation,
                 self.generator,
                 self.settings.epistemic_terms,
+                self.project,
             )
 
     def terms(self, observation: np.ndarray, actions: np.ndarray) -> CostTerms:

@@ -20,6 +20,9 @@ batched ensemble evaluation over all N * P particles plus the mean states:
   ``none``: plain PETS. Both variants cost the same K mean-state rows per sequence.
 * **Clamp**: particles and mean states are clamped into the training data's
   range widened by ``EnsembleConfig.state_margin`` (not in the thesis; see there).
+* **Projection**: then moved by the task's ``project_states`` (BridgeMaze: the
+  quaternion rescaled to unit length), if one is given (not in the thesis; PETS's
+  ``obs_postproc``).
 
 Uncertainties, per state dimension:
 
@@ -35,6 +38,7 @@ Uncertainties, per state dimension:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -75,6 +79,7 @@ def petsus_propagate(
     mean_propagation: MeanPropagation = "per_member",
     generator: torch.Generator | None = None,
     epistemic_terms: EpistemicTerms = "means_and_variances",
+    project: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> Propagation:
     """Propagate P TS1 particles (and the mean states) of N action sequences through the ensemble.
 
@@ -86,9 +91,15 @@ def petsus_propagate(
         mean_propagation: ``per_member``, ``shared`` or ``none`` (see the module docstring).
         generator: torch generator for the particle noise and the TS1 assignment.
         epistemic_terms: what Var_E sums (see :class:`~workers.dynamics.settings.RazerSettings`).
+        project: the task's ``project_states``, applied to every particle and mean state after the clamp.
     """
     if particles < 1:
         raise ValueError(f"particles must be at least 1, got {particles}")
+
+    def settle(states: torch.Tensor) -> torch.Tensor:
+        clamped = model.clamp_states(states)
+        return clamped if project is None else project(clamped)
+
     n, horizon, _ = actions.shape
     k, d = model.ensemble_size, model.obs_dim
     per = -(-particles // k)  # particles per member and sequence, rounded up
@@ -139,7 +150,7 @@ def petsus_propagate(
         mu, logvar = model.predict(torch.cat([state_in, action_in], dim=-1))  # particles and means in one batch
 
         var = logvar[:, :rows].exp()
-        sampled = model.clamp_states(particle_in + mu[:, :rows] + var.sqrt() * noise[t])
+        sampled = settle(particle_in + mu[:, :rows] + var.sqrt() * noise[t])
         torch.index_select(sampled.view(k * rows, d), 0, scatter_rows[t], out=table[:-1])
         states.append(table[:-1].view(n, particles, d).clone())
         var_a.append(var.view(k * rows, d).index_select(0, scatter_rows[t]).view(n, particles, d).mean(dim=1))
@@ -149,7 +160,7 @@ def petsus_propagate(
             spread = population_variance(mean_mu)
             var_e.append(spread + population_variance(mean_var) if epistemic_terms == "means_and_variances" else spread)
             step = mean_mu if mean_propagation == "per_member" else mean_mu.mean(dim=0, keepdim=True)
-            mean_state = model.clamp_states(mean_state + step)
+            mean_state = settle(mean_state + step)
             means.append(mean_state)
 
     return Propagation(

@@ -83,6 +83,15 @@ class ModelBasedTask(ABC):
     def planning_cost(self, obs: torch.Tensor, action: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
         """c(s, a, s') for (B, d), (B, d_a), (B, d) batches -> (B,) (the negative task reward)."""
 
+    def project_states(self, states: torch.Tensor) -> torch.Tensor:
+        """States a model predicted during planning, moved onto the set real states lie on (..., d) -> (..., d).
+
+        Applied to every propagated particle and mean state (workers/dynamics/propagation.py), as PETS's
+        per-environment ``obs_postproc``; not in the thesis. The identity unless a task's states obey a
+        constraint the model does not know, such as a unit quaternion.
+        """
+        return states
+
     @property
     def safety_boxes(self) -> tuple[SafetyBox, ...]:
         """Violation sets for RAZER's safety term (App. D.1.3); none by default."""
