@@ -269,24 +269,32 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "best_from": "step",
     "layout": "wide",
     "unit_quaternion": False,
+    "frozen.task_options": {},
 }
-"""Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name,
-at any depth of a method's settings). They are left out of a trial's key at that value, so that adding a
+"""Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name at
+any depth of a method's settings, or by dotted path where the name alone is ambiguous). They are left out of a trial's key at that value, so that adding a
 setting does not change the identity of trials already run (and ``--resume`` still finds them). Where the
 new default changed the behaviour (APEX's ``window_counts`` and ``relabel_restart``; ``keep_function``;
 ``noise_release``), trials of the new default get new keys and the old trials stay reachable by setting the old
 value."""
 
 
-def _without_neutral_defaults(settings: Any) -> Any:
+def _is_neutral(path: str, key: str, value: Any) -> bool:
+    for name in (f"{path}{key}", key):
+        if name in IDENTITY_NEUTRAL_DEFAULTS and value == IDENTITY_NEUTRAL_DEFAULTS[name]:
+            return True
+    return False
+
+
+def _without_neutral_defaults(settings: Any, path: str = "") -> Any:
     if isinstance(settings, dict):
         return {
-            key: _without_neutral_defaults(value)
+            key: _without_neutral_defaults(value, f"{path}{key}.")
             for key, value in settings.items()
-            if not (key in IDENTITY_NEUTRAL_DEFAULTS and value == IDENTITY_NEUTRAL_DEFAULTS[key])
+            if not _is_neutral(path, key, value)
         }
     if isinstance(settings, list):
-        return [_without_neutral_defaults(value) for value in settings]
+        return [_without_neutral_defaults(value, path) for value in settings]
     return settings
 
 

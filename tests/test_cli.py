@@ -229,6 +229,8 @@ def test_trial_keys_ignore_resources_but_not_config(tmp_path):
         # Pins release "2.1", the release of the trials it compares with: its keys are those of the stored runs.
         ("relocate_contact_margin", "336241e8e1476ee8", "d77398c6ac6c00e9", {}),
         ("razer_noisy_fetch", "ebed66b6819b91c3", "58604de3f2ccae60", {}),  # pins "2.1" too, as its rows ran
+        # Its frozen rows ran at the loop's 150 steps before they ran the task's 200.
+        ("razer_bridge_maze_compact_small", "57e830e596d8d9c1", "f1b81308b3016272", {"frozen": {"task_options": {}}}),
     ],
 )
 def test_settings_added_at_their_neutral_default_keep_trial_keys(sweep, first, last, earlier_reading, tmp_path):

@@ -206,6 +206,23 @@ def test_rows_play_the_same_episode_seeds():
         program.close()
 
 
+def test_frozen_rows_run_the_task_with_their_own_options():
+    """`frozen.task_options` changes the task of the frozen rows only: the loop's episodes keep their 10 steps,
+    the frozen ones (on the runner's worker and on the actor) run 6, and the rows record it."""
+    trial = tiny_trial(iterations=1, frozen={"episodes": 2, "pets": True, "task_options": {"episode_length": 6}})
+    program = build(trial, planners=2)
+    try:
+        reports = run_rounds(program, range(program.total_rounds()))
+        assert reports[1].metrics["steps"] == 10 and reports[1].metrics["dataset_size"] == 30
+        frozen = reports[2].metrics
+        assert frozen["frozen/mean_steps"] == 6 and frozen["frozen/episodes"] == 2
+        remote = [args[1] for _, method, args in program.remote.calls if method == "run_episode"]
+        assert [job.task_options for job in remote if job.razer is not None] == [{"episode_length": 6}]
+        assert program.frozen_task.episode_length == 6 and program.task.episode_length == 10
+    finally:
+        program.close()
+
+
 @pytest.mark.parametrize("release", ["1.1", "2.1"])
 def test_random_episodes_draw_their_noise_as_the_planner_release(release):
     """The loop's colored-noise episodes follow ``planner.noise_release`` like the planner's samples."""
@@ -377,6 +394,18 @@ BAD_INPUT = {
         7,
         "base.frozen.aleatoric_weights",
         ">= 0",
+    ),
+    "frozen_option_the_task_lacks": (
+        "base:\n  frozen:\n    episodes: 25\n    task_options:\n      episode_lenght: 200\n",
+        8,
+        "frozen.task_options.episode_lenght",
+        "bridge_maze has no option 'episode_lenght'",
+    ),
+    "frozen_option_out_of_range": (
+        "base:\n  frozen:\n    episodes: 25\n    task_options:\n      episode_length: 0\n",
+        8,
+        "frozen.task_options.episode_length",
+        "greater than or equal to 1",
     ),
     "safety_without_box": ("base:\n  razer:\n    safety_weight: 5\n", 6, "razer.safety_weight", "has none of its own"),
     "unknown_role": (

@@ -22,6 +22,7 @@ version changes.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from typing import Any, NamedTuple
@@ -52,6 +53,9 @@ class EpisodeJob(NamedTuple):
     """The cost settings (a RazerSettings as a dict); None: a colored-noise random episode."""
     label: str = ""
     """What the episode is for (for progress lines)."""
+    task_options: dict[str, Any] | None = None
+    """Options over the worker's task options for this episode (a frozen row's ``frozen.task_options``, e.g. a
+    longer episode); None: the worker's own task."""
 
 
 class EpisodeOutcome(NamedTuple):
@@ -194,8 +198,11 @@ class PlanningWorker:
 
         self.threads = max(1, int(cpus))
         torch.set_num_threads(self.threads)
+        self.task_name, self.task_options = task_name, dict(task_options)
         self.task = make_task(task_name, task_options)
         self.env = self.task.make_env()
+        self._variants: dict[str, tuple[Any, Any]] = {}
+        """Task and environment per set of options that differ from the worker's own (frozen rows)."""
         self.planner_config = PlannerConfig(**planner)
         self.particles = particles
         self.random_beta, self.random_scale = random_beta, random_scale
@@ -215,16 +222,31 @@ class PlanningWorker:
         import torch
 
         torch.set_num_threads(self.threads)  # a host process (the runner) may have set its own count since
+        task, env = self.task_and_env(job.task_options)
         if job.razer is None:
             release = self.planner_config.noise_release
-            return run_random_episode(self.task, self.env, job.seed, self.random_beta, self.random_scale, release)
+            return run_random_episode(task, env, job.seed, self.random_beta, self.random_scale, release)
         razer = RazerSettings(**job.razer)
         return run_model_episode(
-            self.task, self.env, self.model(weights), self.planner_config, razer, self.particles, job.seed, on_step
+            task, env, self.model(weights), self.planner_config, razer, self.particles, job.seed, on_step
         )
+
+    def task_and_env(self, options: dict[str, Any] | None):
+        """The worker's task and environment, or, for ``options`` that differ, ones built with them (kept)."""
+        if not options:
+            return self.task, self.env
+        key = json.dumps(options, sort_keys=True)
+        if key not in self._variants:
+            from workers.tasks import make_task
+
+            task = make_task(self.task_name, self.task_options | options)
+            self._variants[key] = (task, task.make_env())
+        return self._variants[key]
 
     def pid(self) -> int:
         return os.getpid()
 
     def close(self) -> None:
         self.env.close()
+        for _, env in self._variants.values():
+            env.close()

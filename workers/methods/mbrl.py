@@ -202,6 +202,10 @@ class FrozenSettings(_Settings):
     """One RAZER row per w_A (the x axis of Fig. 19a); the other cost settings are those of ``razer``."""
     epistemic_weight: float = Field(0.0, ge=0)
     """w_E of the RAZER rows (the model is no longer trained, so exploring buys nothing)."""
+    task_options: dict[str, Any] = {}
+    """Task options that differ in the frozen rows from the training iterations' ``task_options``, e.g.
+    ``episode_length: 200``: the loop collects shorter episodes (it pays for every step with planning and
+    training) while the frozen rows run the task's full length. Checked against the task's options."""
 
     @field_validator("aleatoric_weights")
     @classmethod
@@ -295,6 +299,25 @@ def read_model_meta(path: str) -> dict[str, Any]:
         if "__meta__" not in archive.files:
             raise ValueError("not an ensemble checkpoint (no __meta__ member)")
         return json.loads(archive["__meta__"].tobytes().decode())
+
+
+def frozen_task(settings: MbrlSettings, task_name: str):
+    """The task the frozen rows run: the trial's, with ``frozen.task_options`` over its options."""
+    from workers.tasks import TASKS, make_task
+
+    options = dict(settings.task_options) | settings.frozen.task_options
+    try:
+        return make_task(task_name, options)
+    except ValidationError as error:
+        fields = list(TASKS[task_name].Options.model_fields)
+        details = []
+        for item in error.errors():
+            message = item["msg"].removeprefix("Value error, ")
+            if item["type"] == "extra_forbidden":
+                message = f"{task_name} has no option {item['loc'][-1]!r}; its options: {', '.join(fields) or 'none'}"
+            details.append((item["loc"], message, item.get("input")))
+        loc, message, value = details[0]
+        raise located_error(("frozen", "task_options", *loc), message, value) from None
 
 
 def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
@@ -479,7 +502,9 @@ class MbrlProgram(Program):
         update["planner"] = MbrlPlannerSettings(**planner.model_dump())
         # The cost: boxes and dimensions must exist in the task's state.
         update["razer"] = cls._razer_settings(settings.razer, task)
-        return settings.model_copy(update=update)
+        resolved = settings.model_copy(update=update)
+        frozen_task(resolved, task.name)  # options the task does not have are refused here, before anything starts
+        return resolved
 
     @classmethod
     def _model_settings(cls, settings: MbrlSettings, task: Any):
@@ -643,6 +668,7 @@ class MbrlProgram(Program):
         self.history: dict[str, list[float]] = {"return": [], "success": []}
         self.frozen_results: dict[str, dict[str, float]] = {}
         self.rows = frozen_rows(self.settings) if self.settings.frozen.episodes else []
+        self.frozen_task = frozen_task(self.settings, trial.task) if self.settings.frozen.task_options else self.task
         self.training_rounds = 1 + self.settings.iterations
 
     # ----------------------------------------------------- episodes
@@ -749,9 +775,10 @@ class MbrlProgram(Program):
 
     def _frozen_round(self, row: int) -> tuple[dict[str, float], list[Artifact]]:
         name, cost = self.rows[row]
-        razer = cost.settings(self.task.safety_boxes)
+        razer = cost.settings(self.frozen_task.safety_boxes)
         episodes = self.settings.frozen.episodes
-        jobs = [self._job(derived_seed(self.trial.seed, FROZEN, e), razer, name) for e in range(episodes)]
+        options = self.settings.frozen.task_options or None
+        jobs = [self._job(derived_seed(self.trial.seed, FROZEN, e), razer, name, options) for e in range(episodes)]
         outcomes = self._run_episodes(self.weights, jobs, f"frozen {name}")
         episode = self._episode_metrics(outcomes)
         result = {
@@ -759,6 +786,7 @@ class MbrlProgram(Program):
             "aleatoric_weight": cost.aleatoric_weight,
             "pets": float(cost.is_pets()),
             "episodes": float(episodes),
+            "mean_steps": episode["steps"],
         }
         for key in ("success", "falls", "safety_violations", "box_drops", "planning_seconds_per_step"):
             if key in episode:
@@ -771,10 +799,10 @@ class MbrlProgram(Program):
         return metrics, self._frozen_paths(name, outcomes)
 
     # ----------------------------------------------------- records
-    def _job(self, seed: int, razer, label: str):
+    def _job(self, seed: int, razer, label: str, task_options: dict[str, Any] | None = None):
         from workers.dynamics.episodes import EpisodeJob
 
-        return EpisodeJob(seed, None if razer is None else razer.model_dump(), label)
+        return EpisodeJob(seed, None if razer is None else razer.model_dump(), label, task_options)
 
     def _add(self, trajectory: Trajectory, round_index: int) -> None:
         self.buffer.add(Trajectory(trajectory.observations, trajectory.actions, trajectory.rewards))
@@ -844,12 +872,13 @@ class MbrlProgram(Program):
 
     def _frozen_paths(self, name: str, outcomes: list) -> list[Artifact]:
         """plots/frozen_<row>.png: where the row's episodes went (tasks with a plane to draw in)."""
-        paths = [self.task.visited_xy(outcome.trajectory.observations) for outcome in outcomes]
+        task = self.frozen_task
+        paths = [task.visited_xy(outcome.trajectory.observations) for outcome in outcomes]
         if not paths or any(path is None for path in paths):
             return []
         endings = [episode_ending(outcome.metrics) for outcome in outcomes]
         title = f"{self.trial.task} frozen {name} s{self.trial.seed}: {len(paths)} episodes"
-        return [Artifact(f"plots/frozen_{name}.png", frozen_paths_png(paths, endings, title, self.task))]
+        return [Artifact(f"plots/frozen_{name}.png", frozen_paths_png(paths, endings, title, task))]
 
     def _visited_states_png(self) -> bytes | None:
         """Fig. 37b/c: every visited state in the plane of the task, brighter the later it was first reached."""
