@@ -114,6 +114,14 @@ def test_a_frozen_row_weighs_its_episodes_spread_over_the_planning_workers(plann
     work = MbrlProgram.round_work(spec, {"planner": planners})
     assert len(work) == MbrlProgram.planned_rounds(spec)
     assert work == [0.0] + [1.0] * 10 + [row] * 3
+    # Frozen episodes twice as long as the loop's weigh twice as much.
+    longer = MbrlSettings(
+        iterations=10,
+        task_options={"episode_length": 100},
+        frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0], "task_options": {"episode_length": 200}},
+    )
+    work = MbrlProgram.round_work(TrialSpec("mbrl", "bridge_maze", longer, 0), {"planner": planners})
+    assert work == [0.0] + [1.0] * 10 + [2 * row] * 3
 
 
 # --------------------------------------------------------------- the loop

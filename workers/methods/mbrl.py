@@ -642,10 +642,17 @@ class MbrlProgram(Program):
     @classmethod
     def round_work(cls, trial: TrialSpec, counts) -> list[float]:
         """In planned episodes one after another: round 0 plans none (random episodes and a first training), an
-        iteration plans one, a frozen row its episodes spread over the planning workers (see _run_episodes)."""
+        iteration plans one, a frozen row its episodes spread over the planning workers (see _run_episodes),
+        each as long as the frozen task's episodes are against the loop's (``frozen.task_options``)."""
+        from workers.tasks import make_task
+
         settings: MbrlSettings = trial.settings
         workers = max(1, counts.get("planner", 1))
-        row = float(math.ceil(settings.frozen.episodes / workers))
+        length = 1.0
+        if settings.frozen.task_options:
+            loop = make_task(trial.task, settings.task_options).episode_length
+            length = frozen_task(settings, trial.task).episode_length / loop
+        row = float(math.ceil(settings.frozen.episodes / workers)) * length
         rows = len(frozen_rows(settings)) if settings.frozen.episodes else 0
         return [0.0] + [1.0] * settings.iterations + [row] * rows
 
