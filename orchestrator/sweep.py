@@ -479,7 +479,12 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
         try:
             program.Settings.model_validate(base)
         except ValidationError as error:
-            problems += problems_from(error, file, root, program.Settings, prefix=("base",))
+            found = problems_from(error, file, root, program.Settings, prefix=("base",))
+            if data.get("variants") or data.get("parameters"):
+                # A rule across fields (e.g. "no data and no initial_model") may be met by what a variant or a
+                # parameter adds; each trial's whole settings are checked again when the trials are expanded.
+                found = [problem for problem in found if problem.path != "base"]
+            problems += found
         if method == "mpc" and isinstance(base.get("planner"), dict) and "algorithm" in base["planner"]:
             line = node_line(root, ("base", "planner", "algorithm"))
             problems.append(
@@ -623,7 +628,7 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
 
     def report(error: ValidationError, prefix: str, fields: list[str] | None = None) -> None:
         for item in error.errors():
-            path = ".".join([prefix, *map(str, item["loc"])] if prefix else map(str, item["loc"])) or prefix
+            path = ".".join([prefix, *map(str, item["loc"])] if prefix else map(str, item["loc"])) or prefix or "base"
             message = item["msg"].removeprefix("Value error, ")
             if item["type"] == "extra_forbidden" and fields is not None:
                 option = str(item["loc"][-1])

@@ -486,6 +486,20 @@ def test_a_ground_truth_task_is_refused_for_mbrl_and_a_model_task_for_mpc(tmp_pa
         assert code == 2 and fragment in err, err
 
 
+def test_a_rule_across_fields_is_checked_per_trial_where_a_variant_can_meet_it(tmp_path, capsys):
+    """The base alone has no data to learn from; a variant that collects some makes a valid trial, and a variant
+    that does not is refused at the base's line."""
+    base = "base:\n  random_episodes: 0\n  frozen:\n    episodes: 2\n"
+    from orchestrator.sweep import load_sweep
+
+    met = write(tmp_path, "met", HEADER + base + "variants:\n  - name: collects\n    random_episodes: 1\n")
+    (trial,) = load_sweep(met).trials
+    assert trial.config.settings.random_episodes == 1
+    unmet = write(tmp_path, "unmet", HEADER + base + "variants:\n  - name: more_particles\n    particles: 3\n")
+    code, err = validate(unmet, capsys)
+    assert code == 2 and err.startswith(f"{unmet}:4: base: random_episodes is 0 and there is no initial_model"), err
+
+
 def test_task_options_are_validated_like_every_task(tmp_path, capsys):
     sweep = write(tmp_path, "wind", HEADER + "base:\n  task_options:\n    wind_max: -3\n    gust: 1\n")
     code, err = validate(sweep, capsys)
