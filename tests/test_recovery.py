@@ -46,6 +46,13 @@ def losses(reports) -> list[float]:
     return [report.metrics["loss"] for report, _, _ in reports]
 
 
+def test_progress_between_rounds_names_the_next_round_without_the_last_ones_text():
+    trial = toy_trial()
+    program = runner(trial, set())
+    program.run_round(0)
+    assert program.progress()["round"] == 1 and program.progress()["text"] == ""
+
+
 def test_a_worker_lost_mid_round_is_recovered_and_the_trial_ends_as_if_unharmed():
     trial = toy_trial()
     clean = runner(trial, set())

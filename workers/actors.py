@@ -160,6 +160,8 @@ class ProgramRunner:
         report = report._replace(seconds=time.perf_counter() - started)
         self.next_round = index + 1
         self._last_state = state
+        # The finished round's last words would otherwise be shown under the next round's number.
+        self.program.set_progress(0.0, "")
         return report, state, recovered
 
     def _restore_last_round(self) -> None:
