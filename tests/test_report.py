@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -676,11 +677,19 @@ def test_status_tells_a_running_sweeps_time_to_go_at_its_sessions_pace(tmp_path)
     trial(keys[2], FINISHED, began + 300)
     everything = cli("status", cwd=tmp_path).stdout
     assert "finished 6 of 4" in everything  # without the file nothing says which runs are stale
+    asked = time.time()
     status = cli("status", str(sweep), cwd=tmp_path).stdout
+    answered = time.time()
     assert "finished 2 of 4  running 0  failed 1  killed 0" in status
     assert "stale" not in status and "and 4 runs of trials this file no longer defines" in status
-    # 2 to go (the retried failure and the last trial) at 1 trial per 600 s of this session: about 20 minutes.
-    assert "about 20 min" in status and "to go at this session's pace (1 finished in 10 min" in status
+    # 2 to go (the retried failure and the last trial) at 1 trial per session so far (600 s and the time the
+    # commands took): twice the session's length.
+    pace = re.search(
+        r"about (\d+) min (\d+) s to go at this session's pace \(1 finished in (\d+) min (\d+) s\)", status
+    )
+    assert pace, status
+    to_go, session = (60 * int(pace[1]) + int(pace[2])), (60 * int(pace[3]) + int(pace[4]))
+    assert asked - began <= session <= answered - began + 1 and 2 * session - 2 <= to_go <= 2 * session + 1
     tracker.end_sweep(parent, "KILLED", {})
     assert "to go" not in cli("status", str(sweep), cwd=tmp_path).stdout  # a stopped sweep is not on its way
 
