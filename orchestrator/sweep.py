@@ -272,11 +272,11 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "frozen.task_options": {},
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name at
-any depth of a method's settings, or by dotted path where the name alone is ambiguous). They are left out of a trial's key at that value, so that adding a
-setting does not change the identity of trials already run (and ``--resume`` still finds them). Where the
-new default changed the behaviour (APEX's ``window_counts`` and ``relabel_restart``; ``keep_function``;
-``noise_release``), trials of the new default get new keys and the old trials stay reachable by setting the old
-value."""
+any depth of a method's settings, or by dotted path where the name alone is ambiguous). They are left out of
+a trial's key at that value, so that adding a setting does not change the identity of trials already run
+(and ``--resume`` still finds them). Where the new default changed the behaviour (APEX's ``window_counts`` and
+``relabel_restart``; ``keep_function``; ``noise_release``), trials of the new default get new keys and the old
+trials stay reachable by setting the old value."""
 
 
 def _is_neutral(path: str, key: str, value: Any) -> bool:

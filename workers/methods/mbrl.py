@@ -309,15 +309,12 @@ def frozen_task(settings: MbrlSettings, task_name: str):
     try:
         return make_task(task_name, options)
     except ValidationError as error:
-        fields = list(TASKS[task_name].Options.model_fields)
-        details = []
-        for item in error.errors():
-            message = item["msg"].removeprefix("Value error, ")
-            if item["type"] == "extra_forbidden":
-                message = f"{task_name} has no option {item['loc'][-1]!r}; its options: {', '.join(fields) or 'none'}"
-            details.append((item["loc"], message, item.get("input")))
-        loc, message, value = details[0]
-        raise located_error(("frozen", "task_options", *loc), message, value) from None
+        item = error.errors()[0]
+        message = item["msg"].removeprefix("Value error, ")
+        if item["type"] == "extra_forbidden":
+            fields = ", ".join(TASKS[task_name].Options.model_fields) or "none"
+            message = f"{task_name} has no option {item['loc'][-1]!r}; its options: {fields}"
+        raise located_error(("frozen", "task_options", *item["loc"]), message, item.get("input")) from None
 
 
 def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
