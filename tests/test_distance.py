@@ -229,14 +229,49 @@ def test_target_is_copied_after_the_temporal_phase():
     """d_old stays frozen during the temporal updates and equals d_theta right after them (Alg. 4 line 10)."""
     settings = DistanceSettings(hidden=(16,), batch_size=32, temporal_updates_per_episode=3, triangular=False)
     trainer = DistanceTrainer(settings, CountSettings(single_key_dim=4, pair_key_dim=4, sigma=1.0), 4, 2, 2, 6)
-    initial = [p.detach().clone() for p in trainer.model.target.parameters()]
+    initial = [p.detach().clone() for p in trainer.model.target.net.parameters()]
     trainer.add_episodes(marked_episodes(2, 6))
     trainer.temporal_step()
-    assert all(torch.equal(a, b) for a, b in zip(initial, trainer.model.target.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(initial, trainer.model.target.net.parameters()))
     trainer.train()
-    online, target = trainer.model.function.net.parameters(), trainer.model.target.parameters()
+    online, target = trainer.model.function.net.parameters(), trainer.model.target.net.parameters()
     assert all(torch.equal(a, b) for a, b in zip(online, target))
-    assert not all(torch.equal(a, b) for a, b in zip(initial, trainer.model.target.parameters()))
+    assert not all(torch.equal(a, b) for a, b in zip(initial, trainer.model.target.net.parameters()))
+
+
+def test_target_keeps_the_input_statistics_it_was_copied_with():
+    """Merging new episodes moves the live normalisation; d_old, a frozen function, must not move with it."""
+    settings = DistanceSettings(hidden=(16,), batch_size=32, temporal_updates_per_episode=2, triangular=False)
+    trainer = DistanceTrainer(settings, CountSettings(single_key_dim=4, pair_key_dim=4, sigma=1.0), 4, 2, 2, 6)
+    trainer.add_episodes(marked_episodes(2, 6))
+    trainer.train()
+    probe = marked_episodes(1, 6, seed=5)
+    observations, actions, goals = probe.observations[0, :6], probe.actions[0], probe.achieved_goals[0, 1:]
+    before_target = trainer.model.predict_target(observations, actions, goals)
+    before_online = trainer.model.function(observations, actions, goals)
+    far = marked_episodes(2, 6, first=40, seed=7)
+    far.observations[:] *= 10.0
+    trainer.add_episodes(far)  # new statistics, no training yet
+    assert np.array_equal(trainer.model.predict_target(observations, actions, goals), before_target)
+    assert not np.allclose(trainer.model.function(observations, actions, goals), before_online)
+
+
+def test_a_checkpoint_without_the_targets_statistics_loads_them_from_the_live_function():
+    """Checkpoints written before d_old kept its own statistics hold the target network alone."""
+    settings = DistanceSettings(hidden=(16,), batch_size=32, temporal_updates_per_episode=2, triangular=False)
+    counts = CountSettings(single_key_dim=4, pair_key_dim=4, sigma=1.0)
+    trainer = DistanceTrainer(settings, counts, 4, 2, 2, 6)
+    trainer.add_episodes(marked_episodes(2, 6))
+    trainer.train()
+    state = trainer.model.state()
+    old_arrays = {k: v for k, v in state.arrays.items() if not k.startswith("target/")}
+    old_arrays |= {f"target/{k[len('target/net/'):]}": v for k, v in state.arrays.items() if k.startswith("target/net/")}
+    old_meta = {k: v for k, v in state.meta.items() if k != "target"}
+    restored = DistanceTrainer(settings, counts, 4, 2, 2, 6, seed=1)
+    restored.model.load(State(old_arrays, old_meta))
+    probe = marked_episodes(1, 6, seed=5)
+    inputs = probe.observations[0, :6], probe.actions[0], probe.achieved_goals[0, 1:]
+    assert np.array_equal(restored.model.predict_target(*inputs), trainer.model.predict_target(*inputs))
 
 
 # ------------------------------------------------------------ triangular loss
@@ -309,7 +344,7 @@ def test_trainer_applies_the_triangular_cap():
 
     trainer.model.fit = recording_fit  # type: ignore[method-assign]
     with torch.no_grad():  # every estimate far above the cap: 1000 steps
-        trainer.model.target[-1].bias.fill_(1000.0)
+        trainer.model.target.net[-1].bias.fill_(1000.0)
     trainer.triangular_step()
     assert fitted and fitted[0].size > 0 and (fitted[0] == 3.0).all()
 

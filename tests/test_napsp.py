@@ -332,7 +332,7 @@ def test_distance_trainer_state_holds_weights_sketches_and_buffer():
     program.run_round(0)
     state = program.distance.submit(0, "state").result()
     keys = set(state.arrays)
-    assert {"model/function/net/0.weight", "model/target/0.weight"} <= keys
+    assert {"model/function/net/0.weight", "model/target/net/0.weight", "model/target/obs_norm/total"} <= keys
     assert any(key.startswith("counts/single/sketch/") for key in keys)
     assert any(key.startswith("counts/pair/sketch/") for key in keys)
     assert state.arrays["buffer/observations"].shape == (1, 101, 4)

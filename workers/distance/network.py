@@ -5,7 +5,11 @@ network and the input normalisation, rebuilt from plain arrays
 (:meth:`DistanceFunction.weights` / :meth:`DistanceFunction.from_weights`).
 :class:`DistanceModel` is what the distance trainer owns: a DistanceFunction,
 the frozen target d_old copied after every temporal phase (Alg. 4 line 10),
-and Adam.
+and Adam. d_old is a whole DistanceFunction, its input statistics frozen with
+its weights: the live statistics move when the next episodes are merged
+(Alg. 4 line 4), before the temporal phase that bootstraps from d_old, and a
+network read through statistics it was not trained with is not the old
+function.
 
 The third argument g is a goal-space vector (an achieved goal ag(s_j) or a
 desired goal), which is what lets the same network score (s, a, desired goal)
@@ -99,9 +103,9 @@ class DistanceFunction:
         parts.append(self.goal_norm.normalize(goals))
         return torch.from_numpy(np.concatenate(parts, axis=-1))
 
-    def forward(self, inputs: torch.Tensor, net: nn.Module | None = None) -> torch.Tensor:
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
         """Distances (B,) from prepared inputs."""
-        return (net or self.net)(inputs).squeeze(-1)
+        return self.net(inputs).squeeze(-1)
 
     def __call__(self, observations: np.ndarray, actions: np.ndarray | None, goals: np.ndarray) -> np.ndarray:
         """Distances (B,) as numpy, without gradients."""
@@ -150,7 +154,7 @@ class DistanceFunction:
 
 
 class DistanceModel:
-    """The trainer's side: d_theta, the frozen d_old and Adam (Table 20).
+    """The trainer's side: d_theta, the frozen d_old (network and input statistics) and Adam (Table 20).
 
     Args:
         settings: network and loss settings.
@@ -170,16 +174,14 @@ class DistanceModel:
             settings.clip_normalized,
             seed,
         )
-        self.target = copy.deepcopy(self.function.net)
-        for parameter in self.target.parameters():
+        self.target = copy.deepcopy(self.function)
+        for parameter in self.target.net.parameters():
             parameter.requires_grad_(False)
         self.optimizer = torch.optim.Adam(self.function.net.parameters(), lr=settings.learning_rate)
 
     def predict_target(self, observations: np.ndarray, actions: np.ndarray | None, goals: np.ndarray) -> np.ndarray:
         """d_old for a batch, as numpy (the losses' bootstrapped terms)."""
-        with torch.no_grad():
-            inputs = self.function.inputs(observations, actions, goals)
-            return self.function.forward(inputs, self.target).numpy().astype(np.float64)
+        return self.target(observations, actions, goals)
 
     def fit(
         self,
@@ -210,21 +212,28 @@ class DistanceModel:
         return float(loss.detach()), prediction.detach().numpy().astype(np.float64)
 
     def copy_target(self) -> None:
-        """d_old <- d_theta (Alg. 4 line 10)."""
-        self.target.load_state_dict(self.function.net.state_dict())
+        """d_old <- d_theta, with the input statistics of this moment (Alg. 4 line 10)."""
+        self.target.load_weights(self.function.weights())
 
     def state(self) -> State:
         weights = self.function.weights()
         optimizer = optimizer_state(self.optimizer)
         arrays = {f"function/{k}": v for k, v in weights.arrays.items()}
-        arrays |= {f"target/{k}": v for k, v in module_arrays(self.target).items()}
+        target = self.target.weights()
+        arrays |= {f"target/{k}": v for k, v in target.arrays.items()}
         arrays |= {f"optimizer/{k}": v for k, v in optimizer.arrays.items()}
-        return State(arrays, {"function": weights.meta, "optimizer": optimizer.meta})
+        return State(arrays, {"function": weights.meta, "target": target.meta, "optimizer": optimizer.meta})
 
     def load(self, state: State) -> None:
         def part(prefix: str) -> dict[str, np.ndarray]:
             return with_prefix(state.arrays, prefix)
 
         self.function.load_weights(State(part("function/"), state.meta["function"]))
-        load_module_arrays(self.target, part("target/"))
+        if "target" in state.meta:
+            self.target.load_weights(State(part("target/"), state.meta["target"]))
+        else:
+            # A checkpoint from before d_old kept its own statistics holds the target network alone;
+            # it was read through the live statistics, which are the best guess of the ones it saw.
+            self.target.load_weights(self.function.weights())
+            load_module_arrays(self.target.net, part("target/"))
         load_optimizer_state(self.optimizer, State(part("optimizer/"), state.meta["optimizer"]))
