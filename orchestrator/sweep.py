@@ -47,7 +47,7 @@ from orchestrator.yaml_problems import (  # noqa: F401 (SweepError and SweepProb
 )
 from workers.methods import BUILTIN_METHODS, DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
 from workers.planning.config import Algorithm
-from workers.tasks import TASKS, make_task, unknown_task_message
+from workers.tasks import TASKS, make_task, unknown_option_message, unknown_task_message
 
 DEFAULT_MAX_TRIALS = 1000
 MethodName = Literal[tuple(METHODS)]  # type: ignore[valid-type]
@@ -626,21 +626,19 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
         problems.append(SweepProblem(file, blame("task"), "task", problem))
         return None
 
-    def report(error: ValidationError, prefix: str, fields: list[str] | None = None) -> None:
+    def report(error: ValidationError, prefix: str, task_options: bool = False) -> None:
         for item in error.errors():
             path = ".".join([prefix, *map(str, item["loc"])] if prefix else map(str, item["loc"])) or prefix or "base"
             message = item["msg"].removeprefix("Value error, ")
-            if item["type"] == "extra_forbidden" and fields is not None:
-                option = str(item["loc"][-1])
-                hint = closest_hint(option, fields)
-                message = f"{task} has no option {option!r}{hint}; its options: {', '.join(fields) or 'none'}"
+            if item["type"] == "extra_forbidden" and task_options:
+                message = unknown_option_message(task, str(item["loc"][-1]))
             problems.append(SweepProblem(file, blame(path), path, message))
 
     settings = config["settings"]
     try:
         task_instance = make_task(task, settings.get("task_options"))
     except ValidationError as error:
-        report(error, "task_options", list(TASKS[task].Options.model_fields))
+        report(error, "task_options", task_options=True)
         return None
     try:
         validated = program.Settings.model_validate(settings)

@@ -97,7 +97,7 @@ BAD_SWEEPS = {
     "unknown_task_option": (
         "name: x\ntask: door_sparse\nbase:\n  task_options:\n    velocity: qvel\n",
         (5, "task_options.velocity"),
-        "did you mean 'velocity_term'",
+        "door_sparse has no option 'velocity' (did you mean 'velocity_term'?); its options: ",
     ),
     "bad_task_option_value": (
         "name: x\ntask: halfcheetah_running\nparameters:\n  task_options.flip_penalty:\n    values: [10, -1]\n",

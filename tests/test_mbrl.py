@@ -407,7 +407,7 @@ BAD_INPUT = {
         "base:\n  frozen:\n    episodes: 25\n    task_options:\n      episode_lenght: 200\n",
         8,
         "frozen.task_options.episode_lenght",
-        "bridge_maze has no option 'episode_lenght'",
+        "bridge_maze has no option 'episode_lenght' (did you mean 'episode_length'?); its options: ",
     ),
     "frozen_option_out_of_range": (
         "base:\n  frozen:\n    episodes: 25\n    task_options:\n      episode_length: 0\n",

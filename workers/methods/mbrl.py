@@ -303,7 +303,7 @@ def read_model_meta(path: str) -> dict[str, Any]:
 
 def frozen_task(settings: MbrlSettings, task_name: str):
     """The task the frozen rows run: the trial's, with ``frozen.task_options`` over its options."""
-    from workers.tasks import TASKS, make_task
+    from workers.tasks import make_task, unknown_option_message
 
     options = dict(settings.task_options) | settings.frozen.task_options
     try:
@@ -312,8 +312,7 @@ def frozen_task(settings: MbrlSettings, task_name: str):
         item = error.errors()[0]
         message = item["msg"].removeprefix("Value error, ")
         if item["type"] == "extra_forbidden":
-            fields = ", ".join(TASKS[task_name].Options.model_fields) or "none"
-            message = f"{task_name} has no option {item['loc'][-1]!r}; its options: {fields}"
+            message = unknown_option_message(task_name, str(item["loc"][-1]))
         raise located_error(("frozen", "task_options", *item["loc"]), message, item.get("input")) from None
 
 

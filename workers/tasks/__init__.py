@@ -53,6 +53,14 @@ def unknown_task_message(name: str) -> str:
     return f"unknown task {name!r}{hint}; known tasks: {', '.join(TASKS)}"
 
 
+def unknown_option_message(task: str, option: str) -> str:
+    """'<task> has no option ...' with a did-you-mean hint and the list of the task's options."""
+    fields = list(TASKS[task].Options.model_fields)
+    close = difflib.get_close_matches(option, fields, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"{task} has no option {option!r}{hint}; its options: {', '.join(fields) or 'none'}"
+
+
 def make_task(name: str, options: dict[str, Any] | None = None) -> GroundTruthTask | ModelBasedTask | GoalTask:
     """The task registered under ``name``, with its options (see each task's ``Options``)."""
     try:
@@ -75,5 +83,6 @@ __all__ = [
     "TaskOptions",
     "UnknownTaskError",
     "make_task",
+    "unknown_option_message",
     "unknown_task_message",
 ]
