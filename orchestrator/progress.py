@@ -24,7 +24,7 @@ def _trial_progress(label: str, progress: dict) -> str:
     if phase == "placing":
         return f"{label} waiting for CPUs"
     if phase == "restoring":
-        return f"{label} restoring round {progress['round']}"
+        return f"{label} restoring from the checkpoint after round {progress['round'] + 1}/{progress['rounds']}"
     text = progress.get("text")
     where = f"round {progress['round'] + 1}/{progress['rounds']}"
     return f"{label} {where}" + (f" {text}" if text and text != "starting" else "")

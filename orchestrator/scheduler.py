@@ -706,7 +706,9 @@ class SweepScheduler:
 
     def _shown_progress(self, attempt: Attempt) -> dict[str, Any]:
         state = attempt.state
-        shown = {"round": attempt.round_index, "rounds": state.total_rounds, "phase": attempt.phase}
+        # While restoring, the round to show is the checkpoint's: round_index still holds the new attempt's 0.
+        round_index = attempt.checkpoint_round if attempt.phase == "restoring" else attempt.round_index
+        shown = {"round": round_index, "rounds": state.total_rounds, "phase": attempt.phase}
         if attempt.phase == "running":
             shown |= {k: attempt.progress.get(k) for k in ("fraction", "text") if k in attempt.progress}
         return shown

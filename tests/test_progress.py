@@ -31,6 +31,11 @@ def test_the_line_shows_counts_each_running_trials_place_and_the_time_to_go():
     )
 
 
+def test_a_restoring_trial_names_the_checkpoints_round():
+    restoring = STATE._replace(running=[("bridge_maze/s4", {"phase": "restoring", "round": 41, "rounds": 45})])
+    assert "bridge_maze/s4 restoring from the checkpoint after round 42/45 |" in describe(restoring)
+
+
 def test_a_note_on_a_terminal_clears_the_status_line_and_keeps_a_line_of_its_own():
     terminal = Terminal()
     display = ProgressDisplay(terminal)

@@ -563,7 +563,8 @@ def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     assert attempt.round_index == 2 and attempt.progress == {}
     assert state.bad_checkpoints == set()  # written anew: a later restore may use it
     # The lost attempt's last fraction is not the restored one's.
-    restoring = Attempt(state, RunnerlessGroup(), phase="restoring", progress={"fraction": 0.9})
+    restoring = Attempt(state, RunnerlessGroup(), phase="restoring", checkpoint_round=1, progress={"fraction": 0.9})
+    assert scheduler._shown_progress(restoring)["round"] == 1  # the checkpoint's round, not the new attempt's 0
     scheduler._advance(restoring, 2)
     assert restoring.phase == "running" and restoring.round_index == 2 and restoring.progress == {}
     # One unit of work in this session's 60 s: the frozen row's 13 units are 13 minutes away.
