@@ -52,6 +52,10 @@ class RayPending:
     def result(self) -> Any:
         return _get(self.role, self.ref)
 
+    def done(self) -> bool:
+        ready, _ = ray.wait([self.ref], timeout=0)
+        return bool(ready)
+
 
 class RayRoleGroup:
     """The actors of one role, behind the RoleGroup interface (picklable: it travels to the runner)."""

@@ -214,6 +214,39 @@ def test_rows_play_the_same_episode_seeds():
         program.close()
 
 
+class EagerGroup(RecordingGroup):
+    """Role workers whose calls finish as soon as they are submitted, as actors that are ahead of the runner."""
+
+    def submit(self, member, method, *args):
+        pending = super().submit(member, method, *args)
+        pending.result()
+        return pending
+
+
+@pytest.mark.parametrize(
+    "group, expected", [(RecordingGroup, ["1/3", "2/3", "3/3"]), (EagerGroup, ["2/3", "3/3", "3/3"])]
+)
+def test_a_frozen_rows_progress_counts_the_planner_actors_episodes_as_they_finish(group, expected):
+    """Three frozen episodes, two on the runner's worker and one on an actor: the count includes the actor's
+    episode as soon as it is done (eager actor), and reaches 3/3 only at the row's end (actor still running)."""
+    trial = tiny_trial(iterations=0, frozen={"episodes": 3, "pets": True, "aleatoric_weights": []})
+    specs = MbrlProgram.roles_for(trial, 1, {"planner": 2})
+    roles = {spec.name: group(spec.name, [spec.worker(**spec.kwargs) for _ in range(spec.count)]) for spec in specs}
+    program = MbrlProgram(trial, roles, 1)
+    try:
+        program.run_round(0)
+        shown = []
+        set_progress = program.set_progress
+        program.set_progress = lambda fraction, text: (shown.append((fraction, text)), set_progress(fraction, text))
+        program.run_round(1)
+        counts = [text.rsplit(": ", 1)[1].removesuffix(" episodes") for _, text in shown if text.endswith("episodes")]
+        assert counts == expected
+        fractions = [fraction for fraction, text in shown if text.endswith("episodes")]
+        assert fractions == [int(c.split("/")[0]) / 3 for c in expected]
+    finally:
+        program.close()
+
+
 def test_frozen_rows_run_the_task_with_their_own_options():
     """`frozen.task_options` changes the task of the frozen rows only: the loop's episodes keep their 10 steps,
     the frozen ones (on the runner's worker and on the actor) run 6, and the rows record it."""

@@ -119,6 +119,30 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     assert tracker.sweeps()[0].session_started > began  # a resume starts the session `icemlab status` paces
 
 
+def test_a_pending_actor_call_says_whether_it_is_done_without_waiting(local_ray):
+    """Progress counts finished calls on actors with done(): False while the call runs, True once it returned."""
+    from orchestrator.placement import RayPending
+
+    @ray.remote
+    class Gate:
+        def __init__(self):
+            self.open = False
+
+        def release(self):
+            self.open = True
+
+        def wait(self):
+            while not self.open:
+                time.sleep(0.01)
+            return "through"
+
+    gate = Gate.options(max_concurrency=2).remote()
+    pending = RayPending("gate", gate.wait.remote())
+    assert not pending.done()  # the call cannot return before the gate opens
+    ray.get(gate.release.remote())
+    assert pending.result() == "through" and pending.done()
+
+
 @pytest.mark.slow  # a whole sweep through the CLI; the default suite keeps the Ray-free checks
 def test_code_error_fails_after_retries_from_the_last_checkpoint(tmp_path, local_ray):
     """A method that raises on round 2: two attempts (the repeat is identical), rounds 0-1 logged once."""

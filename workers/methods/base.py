@@ -97,6 +97,10 @@ class Pending(Protocol):
 
     def result(self) -> Any: ...
 
+    def done(self) -> bool:
+        """Whether the result is ready; never waits (progress counts finished calls with it)."""
+        ...
+
 
 class RoleGroup(Protocol):
     """The workers of one role, seen by a program."""
@@ -122,6 +126,9 @@ class _Done:
     def result(self) -> Any:
         return self.value
 
+    def done(self) -> bool:
+        return True
+
 
 class _Deferred:
     """An in-process call, run when its result is asked for (as a remote call would still be running)."""
@@ -134,6 +141,9 @@ class _Deferred:
         if self._done is None:
             self._done = _Done(self._call())
         return self._done.value
+
+    def done(self) -> bool:
+        return self._done is not None
 
 
 class LocalRoleGroup:

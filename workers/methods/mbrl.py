@@ -686,6 +686,13 @@ class MbrlProgram(Program):
             if member:
                 pending[index] = self.remote.submit(member - 1, "run_episode", shared, job)
         results: dict[int, Any] = {}
+
+        def episodes_done() -> None:
+            # The planner actors' episodes count as they finish, not when the local share is done: otherwise a
+            # frozen row reads "9/25" (the local share) until its last episode returns.
+            finished = len(results) + sum(call.done() for index, call in pending.items() if index not in results)
+            self.set_progress(finished / len(jobs), f"{label}: {finished}/{len(jobs)} episodes")
+
         local_jobs = [i for i in range(len(jobs)) if i % workers == 0]
         for count, index in enumerate(local_jobs):
 
@@ -694,9 +701,10 @@ class MbrlProgram(Program):
                 self.set_progress(done, f"{label}: step {step}/{steps}")
 
             results[index] = self.local.run_episode(weights, jobs[index], on_step if len(jobs) == 1 else None)
-            self.set_progress((count + 1) / len(local_jobs), f"{label}: {len(results)}/{len(jobs)} episodes")
+            episodes_done()
         for index, call in pending.items():
             results[index] = call.result()
+            episodes_done()
         return [results[i] for i in range(len(jobs))]
 
     # ----------------------------------------------------- training
