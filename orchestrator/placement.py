@@ -53,7 +53,8 @@ class RayPending:
         return _get(self.role, self.ref)
 
     def done(self) -> bool:
-        ready, _ = ray.wait([self.ref], timeout=0)
+        # fetch_local=False: finished anywhere counts; the default would wait for a copy to this node.
+        ready, _ = ray.wait([self.ref], timeout=0, fetch_local=False)
         return bool(ready)
 
 

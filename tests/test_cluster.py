@@ -191,3 +191,38 @@ def test_one_cpu_nodes_get_one_cpu_bundles_and_a_bundle_larger_than_every_node_i
     result = cli("run", str(pinned), "--address", cluster, "--quiet", cwd=tmp_path, env=AUTH, timeout=120)
     assert result.returncode != 0
     assert "bundles of 2 CPUs, each on one node" in result.stderr and "nodes have 1, 1 CPUs" in result.stderr
+
+
+# A driver on the cluster: an actor on the node the driver is not on returns a result too large to travel
+# inline (it stays in that node's object store), and done() is asked once the result is known to be finished.
+REMOTE_RESULT_PROBE = """
+import ray, numpy as np
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+from orchestrator.placement import RayPending
+
+ray.init(address={address!r}, logging_level="ERROR")
+here = ray.get_runtime_context().get_node_id()
+there = next(n["NodeID"] for n in ray.nodes() if n["Alive"] and n["NodeID"] != here)
+
+@ray.remote(num_cpus=1)
+class Episode:
+    def run(self):
+        return np.ones(4_000_000)
+
+actor = Episode.options(scheduling_strategy=NodeAffinitySchedulingStrategy(there, soft=False)).remote()
+ref = actor.run.remote()
+ready, _ = ray.wait([ref], timeout=120, fetch_local=False)
+assert ready, "the remote call did not finish"
+print("done:", RayPending("episode", ref).done())
+"""
+
+
+def test_a_call_finished_on_another_node_is_done_before_its_result_is_fetched(cluster):
+    """Frozen-row progress counts the planner actors' finished episodes with done(); one finished on another
+    node must count at once, not after its result has been copied to the driver's node."""
+    probe = subprocess.run(
+        [sys.executable, "-c", REMOTE_RESULT_PROBE.format(address=cluster)],
+        capture_output=True, text=True, timeout=240, env=dict(os.environ, RAY_USAGE_STATS_ENABLED="0", **AUTH),
+    )  # fmt: skip
+    assert probe.returncode == 0, probe.stderr[-3000:]
+    assert "done: True" in probe.stdout

@@ -263,6 +263,8 @@ def test_a_checkpoint_without_the_targets_statistics_loads_them_from_the_live_fu
     trainer = DistanceTrainer(settings, counts, 4, 2, 2, 6)
     trainer.add_episodes(marked_episodes(2, 6))
     trainer.train()
+    with torch.no_grad():  # d_old apart from d_theta, so a fallback that copied d_theta whole would show
+        trainer.model.target.net[-1].bias.add_(0.5)
     state = trainer.model.state()
     old_arrays = {k: v for k, v in state.arrays.items() if not k.startswith("target/")}
     old_arrays |= {f"target/{k[len('target/net/'):]}": v for k, v in state.arrays.items() if k.startswith("target/net/")}
@@ -272,6 +274,7 @@ def test_a_checkpoint_without_the_targets_statistics_loads_them_from_the_live_fu
     probe = marked_episodes(1, 6, seed=5)
     inputs = probe.observations[0, :6], probe.actions[0], probe.achieved_goals[0, 1:]
     assert np.array_equal(restored.model.predict_target(*inputs), trainer.model.predict_target(*inputs))
+    assert not np.allclose(restored.model.predict_target(*inputs), restored.model.function(*inputs))
 
 
 # ------------------------------------------------------------ triangular loss
