@@ -448,6 +448,18 @@ BAD_INPUT = {
         "frozen.task_options.episode_length",
         "greater than or equal to 1",
     ),
+    "negative_uncertainty_dimension": (
+        "base:\n  razer:\n    uncertainty_dims: [0, -2]\n",
+        6,
+        "razer.uncertainty_dims.1",
+        "greater than or equal to 0",
+    ),
+    "uncertainty_dimension_twice": (
+        "base:\n  razer:\n    uncertainty_dims: [3, 1, 3]\n",
+        6,
+        "razer.uncertainty_dims",
+        "a dimension is listed twice in [3, 1, 3]",
+    ),
     "safety_without_box": ("base:\n  razer:\n    safety_weight: 5\n", 6, "razer.safety_weight", "has none of its own"),
     "unknown_role": (
         "resources:\n  workers:\n    trainers: 2\n",

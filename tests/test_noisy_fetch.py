@@ -202,6 +202,22 @@ def test_noisy_particles_spread_and_razer_adds_exactly_w_a_times_u_a(bundle):
     np.testing.assert_array_equal(single_terms["u_A"], 0.0)  # one particle has no spread
 
 
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {"epistemic_weight": 0.05},
+        {"safety_weight": 5.0, "safety_boxes": [{"dims": [5], "low": [None], "high": [0.3]}]},
+        {"safety_boxes": [{"dims": [40], "low": [None], "high": [0.3]}]},  # w_S 0: the sets would still be computed
+    ],
+    ids=["epistemic", "safety", "boxes_without_weight"],
+)
+def test_the_ground_truth_ensemble_refuses_terms_identical_members_cannot_have(bundle, settings):
+    task, _, model, _ = bundle
+    with BatchEvaluator(task, model, threads=1) as simulator:
+        with pytest.raises(ValueError, match="no epistemic term or safety sets here"):
+            GroundTruthEnsembleEvaluator(simulator, RazerSettings(**settings), particles=2)
+
+
 def test_the_pool_draws_once_so_the_split_over_workers_changes_nothing(bundle):
     from workers.mpc import PlanningState
     from workers.simulation import SimulationPool, SimulationWorker
@@ -347,6 +363,12 @@ BAD_INPUT = {
         6,
         "ensemble.uncertainty_dims",
         "dimension 40 is outside",
+    ),
+    "no_dimension": (
+        f"task: {NAME}\nbase:\n  ensemble:\n    uncertainty_dims: []\n",
+        6,
+        "ensemble.uncertainty_dims",
+        "at least 1 item",
     ),
     "negative_noise": (
         f"task: {NAME}\nbase:\n  task_options:\n    noise_std: -0.5\n",

@@ -107,7 +107,10 @@ class TrainStats(NamedTuple):
 
 
 def gaussian_nll(mean: torch.Tensor, logvar: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Mean over all elements of 0.5 (logvar + (target - mean)^2 / var): eq. 19 without 0.5 log(2 pi).
+    """Mean over all elements of 0.5 (logvar + (target - mean)^2 / var).
+
+    Eq. 19 without 0.5 log(2 pi), averaged over the state dimensions where eq. 19 sums them (as the PETS code
+    does): the loss is eq. 19 / d, which scales it against weight decay and the gradient-norm limit of Table 13.
 
     Equal to ``torch.nn.GaussianNLLLoss(full=False, reduction="mean")(mean, target, var)``
     whenever var exceeds that loss's eps (1e-6; our bounded variances do: exp(-10) = 4.5e-5).

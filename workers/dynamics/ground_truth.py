@@ -21,8 +21,8 @@ horizon, so a risk taken early weighs more than the same risk late. The cost ter
 particle costs; PETS is w_A = 0, the mean particle cost.
 
 Draws are a function of the planning state: :class:`StateDraws` seeds them
-from (seed, a digest of the simulator state, the count of earlier draws at
-that state), so an evaluation is reproducible, the same whether one process
+from (seed, a digest of the simulator state, the count of draws made since
+the planner came to that state), so an evaluation is reproducible, the same whether one process
 simulates a batch or several share it, and an MPC episode resumed from a
 checkpoint draws what the uninterrupted one drew.
 """
@@ -58,7 +58,8 @@ class StateDraws:
         self._calls = 0
 
     def __call__(self, state: SimState, sequences: int, horizon: int) -> np.ndarray:
-        """(N, P, h, noise_dim) draws; the k-th call at one state gives the same values every time."""
+        """(N, P, h, noise_dim) draws; the k-th of consecutive calls at one state gives the same values every time
+        (the count starts over whenever the state changes: a planner never returns to an earlier state)."""
         parts = [state.physics, state.mocap_pos, state.mocap_quat, state.goal if state.goal is not None else ()]
         key = hashlib.blake2b(b"".join(np.asarray(p, np.float64).tobytes() for p in parts), digest_size=8).digest()
         if key != self._key:
@@ -92,7 +93,7 @@ class GroundTruthEnsembleEvaluator:
         if not task.batch_observations:
             raise ValueError(f"{task.name} computes no observations of simulated batches, which Var_A is taken of")
         settings = settings or RazerSettings.pets()
-        if settings.epistemic_weight > 0 or settings.safety_weight > 0:
+        if settings.epistemic_weight > 0 or settings.safety_weight > 0 or settings.safety_boxes:
             raise ValueError("an ensemble of identical ground-truth members has no epistemic term or safety sets here")
         if settings.uncertainty_dims is None and task.uncertainty_dims is not None:
             settings = settings.model_copy(update={"uncertainty_dims": tuple(task.uncertainty_dims)})

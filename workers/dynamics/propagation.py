@@ -31,7 +31,10 @@ Uncertainties, per state dimension:
   Sigma_k(s~_t, a_t); with balanced TS1 both means coincide for P = multiple of K).
 * Var_E(t+1) = Var_k[mu_k(s_bar_t, a_t)] + Var_k[Sigma_k(s_bar_t, a_t)] (eq. 24),
   the empirical (population, divide-by-K) variance over members, taken at each
-  member's own mean state in the per_member mode. The second term literally
+  member's own mean state in the per_member mode. mu_k is the predicted change, as
+  eq. 19 defines it (the mean of the next state is s + mu_k), so this is eq. 24 as
+  written; the spread of the next mean states s_bar^k_{t+1} themselves (D.2.4's
+  recursion) would also count how far the members' mean states have drifted apart. The second term literally
   adds a variance of variances to a variance of means, as eq. 24 writes it;
   ``epistemic_terms="means"`` keeps the first term only.
 """

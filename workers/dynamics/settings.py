@@ -9,9 +9,9 @@ them next to the code that uses them.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, NonNegativeInt, model_validator
 
 if TYPE_CHECKING:
     import torch
@@ -24,6 +24,17 @@ EpistemicTerms = Literal["means_and_variances", "means"]
 
 UncertaintyReduction = Literal["sum_sqrt", "sqrt_sum", "mean_sqrt"]
 """How sqrt(Var) of eq. 26-27 combines the state dimensions (see workers/dynamics/costs.py)."""
+
+
+def _each_once(dims: tuple[int, ...]) -> tuple[int, ...]:
+    if len(set(dims)) < len(dims):
+        raise ValueError(f"a dimension is listed twice in {list(dims)}: each counts once")
+    return dims
+
+
+UncertaintyDims = Annotated[tuple[NonNegativeInt, ...], Field(min_length=1), AfterValidator(_each_once)]
+"""State dimensions whose uncertainty counts: at least one, none negative, none twice (an empty list would make
+the mean over dimensions undefined; use None for all dimensions)."""
 
 
 class EnsembleConfig(BaseModel):
@@ -203,7 +214,7 @@ class RazerSettings(BaseModel):
     log-variance nears its upper bound it outweighs the first many times over (docs/results/razer.md, BridgeMaze)."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) combines dimensions: sum of per-dim std (default), sqrt of the summed variance, mean std."""
-    uncertainty_dims: tuple[int, ...] | None = None
+    uncertainty_dims: UncertaintyDims | None = None
     """Observation dimensions whose uncertainty counts; None: all."""
     safety_weight: float = Field(0.0, ge=0)
     """w_S, the penalty per step whose violation probability exceeds delta (eq. 35); 0 disables safety."""

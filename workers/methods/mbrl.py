@@ -58,6 +58,7 @@ from workers.dynamics.settings import (
     MeanPropagation,
     RazerSettings,
     SafetyBox,
+    UncertaintyDims,
     UncertaintyReduction,
 )
 from workers.methods.base import (
@@ -166,7 +167,7 @@ class RazerCostSettings(_Settings):
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) of eq. 26-27 combines dimensions: sum of per-dimension std (default), sqrt of the summed
     variance, or mean std."""
-    uncertainty_dims: tuple[int, ...] | None = None
+    uncertainty_dims: UncertaintyDims | None = None
     """State dimensions whose uncertainty counts; None: all."""
     safety_weight: float = Field(0.0, ge=0)
     """w_S (c_max of eq. 35), the cost per step whose violation probability exceeds delta; 0 disables safety."""

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from workers.dynamics.settings import UncertaintyReduction
+from workers.dynamics.settings import UncertaintyDims, UncertaintyReduction
 from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec, located_error
 from workers.mpc import MpcEpisode
 from workers.planning import CEMPlanner, PlannerConfig
@@ -39,7 +39,7 @@ class GroundTruthEnsembleSettings(BaseModel):
     """w_A of the aleatoric penalty (eq. 26) on the particles' spread; 0: PETS, the mean particle cost."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How the per-dimension standard deviations combine (workers/dynamics/costs.py)."""
-    uncertainty_dims: tuple[int, ...] | None = None
+    uncertainty_dims: UncertaintyDims | None = None
     """Observation dimensions whose spread is Var_A; None: the task's own (the box position on
     noisy_fetch_pick_place)."""
 
