@@ -27,6 +27,9 @@ INTERRUPTED = "interrupted"
 """Ctrl-C: the run ends KILLED and continues with ``--resume``."""
 DRIVER_ERROR = "driver_error"
 """The driver itself raised (e.g. the tracking store failed): the runs end KILLED, the sweep FAILED."""
+DRIVER_LOST = "driver_lost"
+"""The driver ended without closing its runs (killed with SIGKILL, out of memory, its machine lost): recorded by
+the ``--resume`` that finds them still RUNNING."""
 
 _NODE_MEMORY = re.compile(r"was ([\d.]+\s*[KMGT]?i?B) used / ([\d.]+\s*[KMGT]?i?B) limit")
 _MEMORY_WORDS = re.compile(r"out of memory|OOM|low on memory|memory usage|memory monitor", re.IGNORECASE)

@@ -35,6 +35,7 @@ from orchestrator.failures import (
     BAD_CHECKPOINT,
     CODE_ERROR,
     DRIVER_ERROR,
+    DRIVER_LOST,
     INTERRUPTED,
     LOST_PROCESS,
     Failure,
@@ -327,6 +328,8 @@ class SweepScheduler:
                 runs = self.tracker.trial_runs(previous.run_id)
                 if not self.allow_physics_change:
                     self._refuse_mixed_physics(runs)
+                if previous.status == RUNNING:
+                    self._record_a_lost_driver(previous, runs)
                 self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash, len(self.loaded.trials))
                 return previous.run_id, runs
         run_id = self.tracker.start_sweep(
@@ -339,6 +342,19 @@ class SweepScheduler:
             len(self.loaded.trials),
         )
         return run_id, []
+
+    def _record_a_lost_driver(self, sweep_run, trial_runs) -> None:
+        """A sweep run still RUNNING at a resume lost its driver without a word (a driver that stops by itself
+        closes its runs, see run()): say so in the sweep's run and in each trial run it left RUNNING, so the
+        lost attempts are failures in MLflow like any other. Their rounds continue from the last checkpoint."""
+        host, pid = ((sweep_run.tags.get(TAG_DRIVER) or "").split("|") + ["", ""])[:2]
+        who = f"the driver (pid {pid} on {host})" if pid else "the driver"
+        cause = f"{who} ended without closing the run (killed, out of memory, or its machine lost)"
+        detail = "Found RUNNING by `icemlab run --resume`, which continues the trial from its last checkpoint.\n"
+        self.tracker.record_sweep_failure(sweep_run.run_id, DRIVER_LOST, cause, detail)
+        for run in trial_runs:
+            if run.status == RUNNING:
+                self.tracker.record_failure(run.run_id, run.attempts, DRIVER_LOST, cause, detail)
 
     def _refuse_a_busy_resume(self) -> None:
         """A resume while the sweep's driver still runs (on this host) would run its trials twice."""

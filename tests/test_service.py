@@ -692,6 +692,14 @@ def test_driver_sigkill_then_resume_continues_from_the_last_round(tmp_path, meth
     assert all(c.status == FINISHED for c in after)
     resumed = next(c for c in after if c.trial_key in interrupted)
     assert resumed.run_id == interrupted[resumed.trial_key] and resumed.attempts == 2  # the same run, continued
+    # The lost driver is a failure in MLflow: of the attempt it ran, in the trial it left RUNNING and the sweep.
+    for run_id, others in ((resumed.run_id, [c for c in after if c is not resumed]), (parent.run_id, [])):
+        assert tracker.list_files(run_id, "failures") == ["failures/attempt_001_driver_lost.txt"]
+        assert history(tracker, run_id, "failures/driver_lost") == [(1, 1.0)]
+        for other in others:
+            assert not tracker.list_files(other.run_id, "failures")
+    lost = tracker.download(resumed.run_id, "failures/attempt_001_driver_lost.txt", tmp_path / "lost").read_text()
+    assert f"the driver (pid {driver.pid} on " in lost and "without closing the run" in lost
     rounds = METHODS[method].planned_rounds(load_sweep(sweep).trials[0].config.spec())
     key = "loss" if method == "toy" else "step/reward"
     for child in after:
