@@ -131,6 +131,8 @@ class TrialState:
     """Each round's expected wall time relative to the others (Program.round_work); empty: all alike."""
     launched_here: bool = False
     """Whether this driver launched an attempt of the trial (its run is then this driver's to close)."""
+    closed_here: bool = False
+    """Whether this driver ended the trial's run (FINISHED or FAILED)."""
 
     def work_until(self, rounds: float) -> float:
         """The work of the first ``rounds`` rounds (at most all of them); a fraction counts that share of the
@@ -314,7 +316,8 @@ class SweepScheduler:
         self.experiment = self.sweep.tracking.experiment or self.sweep.name
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
         self._active: list[Attempt] = []
-        self._queue: list[TrialState] = []
+        self._states: list[TrialState] = []
+        """This session's trials; the ones it launched and has not closed are its to close on an abort."""
         """Trials waiting for CPUs or a retry's backoff."""
         self.allow_physics_change = allow_physics_change
         self.notice = notice or _print_notice
@@ -484,7 +487,8 @@ class SweepScheduler:
     def _drive(self, parent_id, states, skipped, threads, concurrent, interrupt) -> SweepOutcome:
         import ray
 
-        queue = self._queue = list(states)
+        queue = list(states)
+        self._states = list(states)
         done = failed = 0
         started = time.monotonic()
         last_display = 0.0
@@ -678,6 +682,7 @@ class SweepScheduler:
             # The run ends before the last checkpoint is written: a driver killed in between resumes from the
             # checkpoint before and repeats the last round (logged once), never continues past it.
             self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
+            state.closed_here = True
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
         state.bad_checkpoints.discard(round_report.index)  # written anew: the refused one is gone
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
@@ -713,6 +718,7 @@ class SweepScheduler:
             state.last_signature = failure.signature
             return "retry"
         self.tracker.end_trial(state.run_id, FAILED)
+        state.closed_here = True
         return "failed"
 
     def _end_attempt(self, attempt: Attempt) -> None:
@@ -769,20 +775,19 @@ class SweepScheduler:
 
     def _abort(self, parent_id: str, kind: str, cause: str, detail: str) -> None:
         """Ctrl-C or a driver error: the runs this session opened and left unfinished end KILLED with the cause
-        (also those waiting out a retry's backoff), the sweep KILLED (FAILED for a driver error).
+        (also those waiting out a retry's backoff, and one whose launch or failure record the error broke off),
+        the sweep KILLED (FAILED for a driver error).
 
         The actors stop first (that needs no MLflow: a failing store must not hold the cluster's CPUs through
         its retries), then each run is recorded on its own, so one refused write does not leave the rest RUNNING;
         the first error of the store is raised at the end."""
-        active = list(self._active)
-        waiting = [s for s in self._queue if s.launched_here and all(a.state is not s for a in active)]
-        for attempt in active:
+        for attempt in list(self._active):
             try:
                 self._end_attempt(attempt)
             except Exception:  # Ray itself may be going down with the same signal
                 pass
         problems: list[Exception] = []
-        for state in [a.state for a in active] + waiting:
+        for state in [s for s in self._states if s.launched_here and not s.closed_here]:
             try:
                 run = self.tracker.trial_run(state.run_id)
                 if run is not None and run.status == RUNNING:

@@ -455,6 +455,19 @@ def test_a_driver_error_the_store_cannot_record_still_reaches_the_caller(tmp_pat
     assert child.status == KILLED and child.error_class == "driver_error"
 
 
+def test_a_run_whose_launch_the_store_broke_off_is_closed_with_the_error(tmp_path, local_ray):
+    """The store fails after the trial's run was opened, before its attempt was running: the run is this
+    session's and must end KILLED with the cause, not stay RUNNING under a FAILED sweep."""
+    sweep = toy_sweep(tmp_path, "launch_broken")
+    uri = default_tracking_uri(tmp_path)
+    dying = DyingTracker(uri, "record_provenance", lambda *_: True, OSError("store refused the write"))
+    with pytest.raises(OSError, match="store refused"):
+        SweepScheduler(load_sweep(sweep), dying).run()
+    parent, (child,) = sweep_runs(uri, "launch_broken")
+    assert parent.status == FAILED
+    assert child.status == KILLED and child.error_class == "driver_error" and "store refused" in child.error
+
+
 def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
     """A trial whose process was lost waits for its retry outside the running attempts; Ctrl-C then must end its
     run KILLED too, not leave it RUNNING under a KILLED sweep."""
@@ -469,7 +482,7 @@ def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
     untouched = TrialState(load_sweep(sweep).trials[0], 4, attempts=1)  # from an earlier session, not launched
     untouched.run_id = tracker.start_trial(parent, "earlier", "earlier", {"seed": 0}, {})
     waiting.launched_here = True  # as _launch marks it (test_a_launched_trial_is_this_drivers_to_close)
-    scheduler._queue = [waiting, untouched]
+    scheduler._states = [waiting, untouched]
     scheduler._abort(parent, "interrupted", "interrupted (Ctrl-C)", "")
     runs = {run.run_id: run for run in tracker.trial_runs(parent)}
     assert runs[waiting.run_id].status == KILLED and runs[waiting.run_id].error_class == "interrupted"
