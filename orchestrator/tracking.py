@@ -55,6 +55,9 @@ TAG_ATTEMPTS = "icemlab.attempts"
 TAG_ERROR = "icemlab.error"
 TAG_ERROR_CLASS = "icemlab.error_class"
 TAG_ROUNDS = "icemlab.rounds"
+TAG_SUMMARY = "icemlab.summary_logged"
+"""Written in one batch with a trial's summary metrics: a driver that dies before the run is closed leaves it, and
+the attempt that closes the run then does not log the summary a second time."""
 TAG_PLANNED_ROUNDS = "icemlab.planned_rounds"
 """How many rounds the trial has in all (set at every attempt)."""
 TAG_ROUND_WORK = "icemlab.round_work"
@@ -609,13 +612,15 @@ class Tracker:
         return sum(1 for path in self.list_files(run_id, "failures") if path.rsplit("/", 1)[-1].startswith(prefix))
 
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
-        """Close a trial's run: FINISHED with its summary metrics, or FAILED / KILLED."""
-        if summary:
+        """Close a trial's run: FINISHED with its summary metrics (once, also when a driver died while it closed
+        the run), or FAILED / KILLED."""
+        tags = self.client.get_run(run_id).data.tags if summary or status == FINISHED else {}
+        if summary and TAG_SUMMARY not in tags:
             now = _now_ms()
-            self.client.log_batch(run_id, metrics=[Metric(k, float(v), now, 0) for k, v in summary.items()])
+            metrics = [Metric(k, float(v), now, 0) for k, v in summary.items()]
+            self.client.log_batch(run_id, metrics=metrics, tags=[RunTag(TAG_SUMMARY, "1")])
         if status == FINISHED:
             # Earlier attempts' errors stay in failures/; the tags describe why a run is not FINISHED.
-            tags = self.client.get_run(run_id).data.tags
             for tag in (TAG_ERROR, TAG_ERROR_CLASS):
                 if tag in tags:
                     self.client.delete_tag(run_id, tag)

@@ -402,6 +402,33 @@ def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no
     assert child.metrics["final_loss"] == uninterrupted_toy_losses(sweep)[-1]
 
 
+def test_a_driver_killed_between_the_summary_and_closing_the_run_logs_the_summary_once(tmp_path, local_ray):
+    """The summary metrics are written, the driver dies before the run is FINISHED: the resume repeats the last
+    round and closes the run without writing the summary a second time."""
+    sweep = toy_sweep(tmp_path, "summary_once")
+    uri = default_tracking_uri(tmp_path)
+    dying = Tracker(uri)
+    set_terminated = dying.client.set_terminated
+
+    def dies_as_it_closes(run_id, status=None, *args, **kwargs):
+        if status == FINISHED and dying.client.get_run(run_id).data.tags.get("icemlab.kind") == "trial":
+            raise DriverDied()
+        return set_terminated(run_id, status, *args, **kwargs)
+
+    dying.client.set_terminated = dies_as_it_closes
+    with pytest.raises(DriverDied):
+        SweepScheduler(load_sweep(sweep), dying).run()
+    (child,) = sweep_runs(uri, "summary_once")[1]
+    assert child.status == RUNNING and len(history(dying, child.run_id, "final_loss")) == 1
+
+    tracker = Tracker(uri)
+    outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
+    assert (outcome.finished, outcome.failed) == (1, 0)
+    (child,) = sweep_runs(uri, "summary_once")[1]
+    assert child.status == FINISHED and child.attempts == 2
+    assert history(tracker, child.run_id, "final_loss") == [(0, uninterrupted_toy_losses(sweep)[-1])]
+
+
 def test_an_error_of_the_driver_is_recorded_in_mlflow_and_the_sweep_resumes(tmp_path, local_ray):
     """The tracking store refuses round 2's metrics: the error goes on to the caller, and MLflow says what
     happened (the sweep FAILED with the cause, the trial KILLED with a driver_error), not RUNNING forever."""
