@@ -48,6 +48,8 @@ class Failure(NamedTuple):
     """What identifies a repeat of the same error (exception type and traceback, without addresses)."""
     memory: bool = False
     """A memory kill (kernel OOM killer or Ray's memory monitor)."""
+    recovered: tuple[str, ...] = ()
+    """Causes of the role workers the runner recovered in the failed round before it failed (not yet recorded)."""
 
 
 def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
@@ -58,7 +60,7 @@ def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
     """
     import ray.exceptions as rex
 
-    from workers.actors import CheckpointMismatchError
+    from workers.actors import RECOVERED_ATTRIBUTE, CheckpointMismatchError
     from workers.checkpoint import CheckpointError
     from workers.methods import RoleWorkerLost
 
@@ -67,13 +69,14 @@ def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
     while isinstance(inner, rex.RayTaskError) and isinstance(inner.cause, rex.RayError):
         inner = inner.cause
     cause_of_task = inner.cause if isinstance(inner, rex.RayTaskError) else inner
+    recovered = tuple(getattr(cause_of_task, RECOVERED_ATTRIBUTE, ()))
     if isinstance(cause_of_task, CheckpointError | CheckpointMismatchError):
         return Failure(BAD_CHECKPOINT, _first_line(cause_of_task), _detail(error), _signature(error))
     if isinstance(cause_of_task, RoleWorkerLost):  # a role worker lost beyond what the runner could recover
         text = str(cause_of_task)
         memory = bool(_MEMORY_WORDS.search(text))
         cause = _lost_cause(cause_of_task, text, memory, memory_mb)
-        return Failure(LOST_PROCESS, cause, _detail(error), _signature(cause_of_task), memory)
+        return Failure(LOST_PROCESS, cause, _detail(error), _signature(cause_of_task), memory, recovered)
     lost_types = (
         rex.ActorDiedError,
         rex.ActorUnavailableError,
@@ -89,7 +92,7 @@ def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
         cause = _lost_cause(inner, text, memory, memory_mb)
         return Failure(LOST_PROCESS, cause, text, _signature(inner), memory)
     detail = _detail(error)
-    return Failure(CODE_ERROR, _code_cause(cause_of_task, detail), detail, _signature(error))
+    return Failure(CODE_ERROR, _code_cause(cause_of_task, detail), detail, _signature(error), recovered=recovered)
 
 
 def _lost_cause(error: BaseException, text: str, memory: bool, memory_mb: float | None) -> str:

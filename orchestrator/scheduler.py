@@ -651,10 +651,7 @@ class SweepScheduler:
             return False
 
         round_report, data, recovered = value
-        for cause in recovered:  # stateful workers lost and recovered in the runner: the same budget
-            state.lost_left -= 1
-            state.recovered += 1
-            self.tracker.record_recovery(state.run_id, state.recovered, LOST_PROCESS, cause)
+        self._record_recoveries(state, recovered)
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
             self.tracker.record_machine(state.run_id, machine)
@@ -693,6 +690,13 @@ class SweepScheduler:
         self._end_attempt(attempt)
         return True
 
+    def _record_recoveries(self, state: TrialState, causes: Sequence[str]) -> None:
+        """Stateful workers lost and recovered in place by the runner: they spend the lost-process budget."""
+        for cause in causes:
+            state.lost_left -= 1
+            state.recovered += 1
+            self.tracker.record_recovery(state.run_id, state.recovered, LOST_PROCESS, cause)
+
     def _cost(self, state: TrialState, attempt: Attempt) -> dict[str, float]:
         """Core-seconds per unit of the method's work, from the rounds' seconds: what later plans estimate from."""
         seconds = sum(value for _, value in self.tracker.metric_history(state.run_id, ROUND_SECONDS))
@@ -705,6 +709,7 @@ class SweepScheduler:
         self._end_attempt(attempt)
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
         detail = "the same error as an earlier attempt (see its file)" if repeat else failure.detail
+        self._record_recoveries(state, failure.recovered)  # made in the round before it failed
         self.tracker.record_failure(state.run_id, state.attempts, failure.kind, failure.cause, detail)
         if failure.kind == BAD_CHECKPOINT and attempt.checkpoint_round is not None:
             state.bad_checkpoints.add(attempt.checkpoint_round)

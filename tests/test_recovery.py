@@ -89,6 +89,28 @@ def test_without_recoveries_left_the_loss_is_handed_on():
         harmed.run_round(0)
 
 
+def test_a_round_that_fails_after_a_recovery_carries_the_recovery_to_the_driver():
+    """Recovered once, lost again with no recovery left: the error says what was recovered before it, and the
+    driver's classification passes that on, so the first loss is recorded and counted too."""
+    from orchestrator.failures import LOST_PROCESS, classify
+
+    harmed = runner(toy_trial(), {3, 4}, recoveries=1)  # both losses in round 2
+    harmed.run_round(0), harmed.run_round(1)
+    with pytest.raises(RoleWorkerLost) as lost:
+        harmed.run_round(2)
+    failure = classify(lost.value)
+    assert failure.kind == LOST_PROCESS and len(failure.recovered) == 1
+    assert "a worker of role 'trainer' was lost: killed" in failure.recovered[0]
+
+
+def test_a_round_that_fails_without_a_recovery_carries_none():
+    from orchestrator.failures import classify
+
+    with pytest.raises(RoleWorkerLost) as lost:
+        runner(toy_trial(), {1}, recoveries=0).run_round(0)
+    assert classify(lost.value).recovered == ()
+
+
 def test_the_lost_process_backoff_grows_until_a_round_completes():
     """Losses without progress back off longer each time; a completed round starts the backoff over."""
     from orchestrator.scheduler import BACKOFF_SECONDS, TrialState

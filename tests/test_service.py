@@ -380,6 +380,9 @@ class RunnerlessGroup:
 
     runner = type("Runner", (), {"run_round": _Call()})()
 
+    def teardown(self):
+        pass
+
 
 def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no_further(tmp_path, local_ray):
     """The driver dies as it closes the finished trial: the resume must not continue past the last round (a
@@ -605,6 +608,27 @@ def test_the_first_round_an_attempt_logs_is_the_one_checked_for_a_partial_log(tm
     for index in (1, 2, 3):
         scheduler._advance(attempt, (RoundReport(index, {"loss": 1.0}, step=index), b"state", []))
     assert flags == [True, False]  # round 1 was skipped; round 2 is checked, round 3 is new
+
+
+def test_recoveries_made_before_a_round_failed_are_recorded_and_spend_the_budget(tmp_path):
+    """The runner recovered a worker, then lost one with no recovery left: both losses are in MLflow and in the
+    budget (before, the recovery vanished with the round and the next attempt got it back)."""
+    from orchestrator.failures import LOST_PROCESS, Failure
+    from orchestrator.scheduler import Attempt, TrialState
+
+    sweep = toy_sweep(tmp_path, "recovered_then_lost")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("recovered_then_lost", "r", "hash", sweep.read_text(), {}, "dev")
+    state = TrialState(load_sweep(sweep).trials[0], 4, attempts=1, lost_left=2)
+    state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    failure = Failure(LOST_PROCESS, "trainer lost", "detail", "sig", recovered=("trainer lost: first",))
+    assert scheduler._failed(Attempt(state, RunnerlessGroup(), phase="running"), failure) == "retry"
+    assert state.lost_left == 0 and state.recovered == 1
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0)]
+    assert history(tracker, state.run_id, "failures/lost_process") == [(1, 1.0)]
+    again = Failure(LOST_PROCESS, "trainer lost", "detail", "sig")
+    assert scheduler._failed(Attempt(state, RunnerlessGroup(), phase="running"), again) == "failed"
 
 
 def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):

@@ -72,13 +72,19 @@ class CheckpointFromOtherCodeError(RuntimeError):
     attempt with this code fails alike, and an earlier checkpoint of the same code would fail too)."""
 
 
+RECOVERED_ATTRIBUTE = "recovered_in_round"
+"""Set on an error that ends a round after role workers were recovered in it: their causes (list of str), so the
+driver records those recoveries and counts them against the budget as it does a finished round's."""
+
+
 class ProgramRunner:
     """Runs the rounds of one trial's program.
 
     A stateful role worker lost during a round (:class:`RoleWorkerLost`) costs that round only: the runner
     keeps the checkpoint of the last completed round, restores the program from it (which hands the
     restarted worker its state again) and runs the round again, up to ``recoveries`` times over the
-    attempt; each recovery is reported with the round's result.
+    attempt; each recovery is reported with the round's result, or, if the round fails after all, on its
+    error (:data:`RECOVERED_ATTRIBUTE`).
 
     Args:
         trial: the trial.
@@ -146,17 +152,22 @@ class ProgramRunner:
             self._last_state = self._checkpoint(index)
         recovered: list[str] = []
         started = time.perf_counter()
-        while True:
-            try:  # the round and the state after it (gathered from the stateful workers too)
-                report = self.program.run_round(index)
-                state = self._checkpoint(index + 1)
-                break
-            except RoleWorkerLost as lost:
-                if self.recoveries_left <= 0:
-                    raise
-                self.recoveries_left -= 1
-                recovered.append(str(lost))
-                self._restore_last_round()
+        try:
+            while True:
+                try:  # the round and the state after it (gathered from the stateful workers too)
+                    report = self.program.run_round(index)
+                    state = self._checkpoint(index + 1)
+                    break
+                except RoleWorkerLost as lost:
+                    if self.recoveries_left <= 0:
+                        raise
+                    self.recoveries_left -= 1
+                    recovered.append(str(lost))
+                    self._restore_last_round()
+        except Exception as error:
+            if recovered:
+                setattr(error, RECOVERED_ATTRIBUTE, list(recovered))
+            raise
         report = report._replace(seconds=time.perf_counter() - started)
         self.next_round = index + 1
         self._last_state = state
