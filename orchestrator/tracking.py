@@ -660,7 +660,7 @@ class Tracker:
             self.client.log_artifact(run_id, str(state), folder)
             (Path(directory) / "manifest.json").write_text(json.dumps(manifest))
             self.client.log_artifact(run_id, str(Path(directory) / "manifest.json"), folder)
-        self._prune_checkpoints(run_id)
+        self._prune_checkpoints(run_id, round_index)
 
     def _checkpoint_rounds(self, run_id: str) -> list[int]:
         rounds = []
@@ -670,8 +670,11 @@ class Tracker:
                 rounds.append(int(name[6:]))
         return sorted(rounds)
 
-    def _prune_checkpoints(self, run_id: str) -> None:
-        rounds = self._checkpoint_rounds(run_id)
+    def _prune_checkpoints(self, run_id: str, written: int) -> None:
+        """Keep the newest few checkpoints up to the one just ``written``. Later ones are left alone and not
+        counted: they exist only when the trial went back past them (they were refused), and counting them
+        would delete the one just written."""
+        rounds = [r for r in self._checkpoint_rounds(run_id) if r <= written]
         if len(rounds) <= KEEP_CHECKPOINTS:
             return
         try:

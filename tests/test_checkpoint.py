@@ -123,6 +123,20 @@ def test_the_store_keeps_the_newest_checkpoints_and_verifies_them(store):
     assert stored.round_index == 4 and checkpoint.from_bytes(stored.data)["round"] == 4 and notes == []
 
 
+def test_a_trial_gone_back_past_its_newest_checkpoints_keeps_the_ones_it_writes_anew(store):
+    """Rounds 5-7 were refused and the trial began again: its new checkpoints are older than those, yet each is
+    the one a later loss must restart from, so pruning counts only the checkpoints up to the one written."""
+    tracker, run_id = store
+    for index in (5, 6, 7):
+        tracker.save_checkpoint(run_id, index, checkpoint.to_bytes({"round": index}))
+    for index in range(5):
+        tracker.save_checkpoint(run_id, index, checkpoint.to_bytes({"round": index, "again": True}))
+    kept = [f"checkpoints/round_{i:06d}" for i in (2, 3, 4, 5, 6, 7)]
+    assert tracker.list_files(run_id, "checkpoints") == kept
+    stored, _ = tracker.load_checkpoint(run_id, skip={5, 6, 7})
+    assert stored.round_index == 4 and checkpoint.from_bytes(stored.data)["again"]
+
+
 def test_a_truncated_checkpoint_falls_back_to_the_previous_round(store):
     tracker, run_id = store
     for index in range(3):
