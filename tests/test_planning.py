@@ -133,6 +133,32 @@ def test_resolved_beta_defaults():
     assert PlannerConfig(algorithm="icem").resolved(task_beta=3.5).noise_beta == 3.5
     assert PlannerConfig(algorithm="icem", noise_beta=0.0).resolved(task_beta=3.5).noise_beta == 0.0
     assert PlannerConfig(algorithm="cem_mpc").resolved(task_beta=3.5).noise_beta == 0.0
+    # iCEM without clipping (an ablation) samples truncated normals, which are white: its record says so.
+    assert PlannerConfig(algorithm="icem", bounds="truncate").resolved(task_beta=3.5).noise_beta == 0.0
+
+
+@pytest.mark.parametrize(
+    "given, tolerance",
+    [
+        (dict(iterations=5), 3),  # 5 x 20 (the 2K floor) + 3 shifted: the closest there is
+        (dict(population=100), 3),  # one iteration of 100 + 3 shifted (Table 4's 3 iterations would spend 247)
+        (dict(elites=5), 0),  # Table 4's N = 40 with K = 5 would spend 98
+    ],
+)
+def test_a_budget_is_spent_whatever_part_of_the_schedule_is_given(given, tolerance):
+    """Given iterations, N is solved for the budget; given N, the iterations; another K re-solves Table 4's N."""
+    config = PlannerConfig(budget=100, **given).resolved(task_beta=0.25)
+    assert all(getattr(config, name) == value for name, value in given.items())
+    spent = config.trajectories_per_step()
+    assert abs(spent - 100) <= tolerance, (config.population_sizes(), config.reused_elites())
+
+
+@pytest.mark.parametrize("switch", ["keep_elites", "shift_elites"])
+def test_an_elite_reuse_that_reuses_no_elite_is_refused(switch):
+    with pytest.raises(ValidationError, match=f"{switch} reuse .* = 0 elites"):
+        PlannerConfig(algorithm="cem_mpc", **{switch: True})  # the preset's elite_fraction is 0
+    with pytest.raises(ValidationError, match="= 0 elites"):
+        PlannerConfig(algorithm="icem", elite_fraction=0.05)  # floor(0.05 * 10) = 0
 
 
 # ------------------------------------------------------------- validation
@@ -209,6 +235,14 @@ def test_planners_reduce_cost_and_respect_bounds(algorithm):
     random_cost = quadratic_cost(np.random.default_rng(0).uniform(-1, 1, (1000, 10, 2))).mean()
     assert result.best_cost < 0.5 * random_cost
     assert result.trajectories == sum(len(b) for b in recorder.batches)
+
+
+@pytest.mark.parametrize("best_from", ["step", "last_iteration"])
+def test_a_step_whose_every_cost_is_not_finite_still_gives_an_action(best_from):
+    """A learned model early in training may put out NaN for every sample: the step executes something."""
+    planner = make("icem", best_from=best_from)
+    result = planner.plan(lambda actions: np.full(len(actions), np.nan))
+    assert result.action.shape == (2,) and np.all(np.abs(result.action) <= 1.0)
 
 
 def test_icem_spends_its_budget_per_step():

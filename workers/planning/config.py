@@ -9,6 +9,7 @@ any switch can be overridden, which is how the ablations of Fig. 7 are run
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 from typing import Any, Literal
 
@@ -91,8 +92,11 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-SPENDING_SWITCHES = ("population_decay", "elite_fraction", "keep_elites", "shift_elites")
-"""Switches that change how many trajectories a schedule spends; Table 4's rows assume the preset's values."""
+SPENDING_SWITCHES = ("elites", "population_decay", "elite_fraction", "keep_elites", "shift_elites")
+"""Settings that change how many trajectories a schedule spends; Table 4's rows assume the preset's values (K = 10,
+Table 5). Re-evaluating kept elites (``reevaluate_elites``) is not among them: a budget counts the sequences
+sampled, as Table 4 does, and a stochastic evaluator's second draws of kept elites come on top of it
+(``trajectories_per_step`` counts them)."""
 
 
 class PlannerConfig(BaseModel):
@@ -107,11 +111,14 @@ class PlannerConfig(BaseModel):
     bounds: BoundHandling | None = None
     """Action bounds: clip (iCEM), truncate at the bounds (CEM_MPC), or at 2 sigma with sigma capped (CEM_PETS)."""
     budget: int | None = Field(100, ge=1)
-    """Trajectories evaluated per environment step; sets iterations and population by Table 4. Must be >= 2 * elites."""
+    """Trajectories evaluated per environment step; sets iterations and population by Table 4 (given one of them,
+    the other is chosen to spend the budget). Must be >= 2 * elites."""
     iterations: int | None = Field(None, ge=1)
-    """CEM-iterations per environment step. Default: from the budget (Table 4)."""
+    """CEM-iterations per environment step. Default: from the budget (Table 4); given with a budget, the population
+    is chosen to spend it."""
     population: int | None = Field(None, ge=2)
-    """Initial population N (samples in the first CEM-iteration). Default: from the budget (Table 4)."""
+    """Initial population N (samples in the first CEM-iteration). Default: from the budget (Table 4); given with a
+    budget, the iterations are chosen to spend it."""
     horizon: int = Field(30, ge=1)
     """Planning horizon h in environment steps (30 with ground-truth models, Table 6)."""
     sigma_init: float = Field(0.5, gt=0)
@@ -192,10 +199,25 @@ class PlannerConfig(BaseModel):
             raise ValueError("without a budget, set both iterations and population")
         return self
 
+    @model_validator(mode="after")
+    def _reused_elites_exist(self) -> PlannerConfig:
+        switched = [name for name in ("keep_elites", "shift_elites") if getattr(self, name)]
+        if switched and self.reused_elites() == 0:
+            raise ValueError(
+                f"{' and '.join(switched)} reuse floor(elite_fraction * elites) = floor({self.elite_fraction or 0.0:g}"
+                f" * {self.elites}) = 0 elites, so they would do nothing; raise elite_fraction (0.3 in Table 5)"
+            )
+        return self
+
     # ----------------------------------------------------------- resolving
     def resolved(self, task_beta: float) -> PlannerConfig:
-        """The same config with every default made concrete (beta, iterations, population)."""
-        beta = self.noise_beta if self.noise_beta is not None else (task_beta if self.algorithm == "icem" else 0.0)
+        """The same config with every default made concrete (beta, iterations, population).
+
+        The task's beta is iCEM's with clipping only: truncated normals are white, so an iCEM that truncates
+        (an ablation) samples white noise and records beta 0.
+        """
+        colored = self.algorithm == "icem" and self.bounds == "clip"
+        beta = self.noise_beta if self.noise_beta is not None else (task_beta if colored else 0.0)
         iterations, population = self.iterations, self.population
         if iterations is None or population is None:
             table_iterations, table_population = budget_schedule(self.algorithm, self.budget or 0, self)
@@ -231,22 +253,37 @@ def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple
     A Table 4 row holds for its algorithm's own decay and elite reuse; a
     config that switches one of them (an ablation, Fig. 7) keeps the row's
     iterations and gets the N that spends the same budget, so that variants
-    compare at equal trajectories per step.
+    compare at equal trajectories per step. A config that gives its
+    iterations gets the N that spends the budget with them; one that gives
+    its N gets the iterations that come closest.
     """
     table = ICEM_BUDGETS | CHAPTER_4_BUDGETS if algorithm == "icem" else CEM_BUDGETS
     preset = PRESETS.get(algorithm, {})
-    spends_as_tabled = all(getattr(config, name) == preset.get(name) for name in SPENDING_SWITCHES)
-    if budget in table and spends_as_tabled:
+    defaults = {name: PlannerConfig.model_fields[name].default for name in SPENDING_SWITCHES}
+    spends_as_tabled = all(getattr(config, name) == preset.get(name, defaults[name]) for name in SPENDING_SWITCHES)
+    if config.population is not None:
+        # Every CEM-iteration adds at least 2K trajectories: past the budget, more only go further past it.
+        spends = itertools.accumulate(max(int(config.population * (config.population_decay or 1.0) ** -i),
+                                          2 * config.elites) for i in range(budget))
+        iterations = 1 + sum(1 for spent in spends if spent < budget)
+        return _closest_spend(config, budget, [(i, config.population) for i in range(1, min(iterations, budget) + 1)])
+    if budget in table and spends_as_tabled and config.iterations in (None, table[budget][0]):
         return table[budget]
-    # The row of the budget itself when listed, otherwise of the nearest listed below.
+    # Given iterations, or the row of the budget itself when listed, otherwise of the nearest listed below.
     listed = sorted(table)
-    iterations = table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
-    best_population, best_gap = None, math.inf
-    for population in range(max(config.elites, 2), budget + 1):
+    iterations = config.iterations or table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
+    return _closest_spend(config, budget, [(iterations, n) for n in range(max(config.elites, 2), budget + 1)])
+
+
+def _closest_spend(config: PlannerConfig, budget: int, schedules: list[tuple[int, int]]) -> tuple[int, int]:
+    """The (iterations, N) among ``schedules`` whose trajectories per step come closest to ``budget`` (the first
+    of equals)."""
+    best, best_gap = None, math.inf
+    for iterations, population in schedules:
         trial = config.model_copy(update=dict(iterations=iterations, population=population))
         gap = abs(trial.trajectories_per_step() - budget)
         if gap < best_gap:
-            best_population, best_gap = population, gap
-    if best_population is None:
-        raise ValueError(f"budget {budget} is too small for {iterations} iterations")
-    return iterations, best_population
+            best, best_gap = (iterations, population), gap
+    if best is None:
+        raise ValueError(f"budget {budget} is too small for {schedules[0][0] if schedules else 'any'} iterations")
+    return best

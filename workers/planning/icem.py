@@ -253,7 +253,8 @@ class CEMPlanner:
             order = np.argsort(costs, kind="stable")[: config.elites]
             elites, elite_batch = samples[order], batch.take(order)
             final_elites = i == last and config.best_from == "last_iteration"
-            if final_elites or costs[order[0]] < best_cost:
+            # With every cost non-finite (a diverging learned model) the first elite is the best there is.
+            if final_elites or best_sequence is None or costs[order[0]] < best_cost:
                 best_cost, best_sequence = float(costs[order[0]]), elites[0].copy()
                 best_components = {k: float(v[0]) for k, v in elite_batch.components.items()}
 
