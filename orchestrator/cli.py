@@ -185,7 +185,10 @@ def build_parser() -> argparse.ArgumentParser:
     policy.add_argument("--task", default=None, help="the task to roll it on (default: the checkpoint's)")
     policy.add_argument("--episodes", type=int, default=1, help="episodes (seeds SEED, SEED+1, ...)")
     policy.add_argument("--seed", type=int, default=0, help="seed of the first episode")
-    policy.add_argument("--steps", type=int, default=None, help="steps per episode (default: the task's)")
+    policy.add_argument(
+        "--steps", type=int, default=None,
+        help="steps per episode (default: chapter 4's, which APEX trains on: 500 on humanoid_standup, else the task's)",
+    )  # fmt: skip
     policy.add_argument("--frames", type=Path, default=None, metavar="PNG", help="write a frame strip here")
 
     model = commands.add_parser(
@@ -690,7 +693,7 @@ def cmd_policy(args) -> int:
     except PolicyCheckpointError as error:
         print(f"icemlab: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    print(f"{result.task}: policy version {result.version}, {len(result.returns)} episode(s)")
+    print(f"{result.task}: policy version {result.version}, {len(result.returns)} episode(s) of {result.steps} steps")
     for episode, (total, success) in enumerate(zip(result.returns, result.successes)):
         shown = "" if success is None else f"  success {int(success)}"
         print(f"  episode {episode} (seed {args.seed + episode}): return {total:.2f}{shown}")

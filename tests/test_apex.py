@@ -98,6 +98,17 @@ def test_lambda_times_the_auxiliary_range_is_c_times_the_main_range():
     assert rank.records[-1].main_range == pytest.approx(np.ptp(main[elites]))
 
 
+def test_a_diverged_sample_among_the_elites_counts_in_neither_range():
+    """Fewer finite costs than K: the non-finite sample's guidance distance must not widen R(C) (eq. 17)."""
+    main = np.array([1.0, 3.0, np.inf, np.nan])
+    guidance = np.array([2.0, 4.0, 100.0, 0.0])
+    rank = objective(c=0.025, epsilon=1e-12, elites=3)
+    rank(CostBatch(main, components={GUIDANCE: guidance}), 0)
+    # The preliminary elites are samples 0, 1 and the diverged 2 (only two are finite); the ranges are over 0, 1.
+    assert rank.records[-1].main_range == 2.0
+    assert rank.records[-1].lambdas[GUIDANCE] == pytest.approx(0.025 * 2.0 / 2.0)
+
+
 def test_weighted_auxiliary_cost_is_invariant_to_rescaling_it():
     rng = np.random.default_rng(1)
     main, guidance = rng.normal(0, 1, 30), rng.uniform(0, 2, 30)
@@ -698,7 +709,7 @@ def test_policy_command_rolls_a_checkpoint_and_refuses_another_tasks(tmp_path):
     path.write_bytes(reports[-1].artifacts[0].data)
     result = cli("policy", str(path), "--episodes", "2", "--steps", "10", cwd=tmp_path, env=cli_env())
     assert result.returncode == 0, result.stderr
-    assert "point_reach: policy version 2, 2 episode(s)" in result.stdout and "mean return" in result.stdout
+    assert "point_reach: policy version 2, 2 episode(s) of 10 steps" in result.stdout and "mean return" in result.stdout
     wrong = cli("policy", str(path), "--task", "halfcheetah_running", cwd=tmp_path, env=cli_env())
     assert wrong.returncode == 2
     assert "a policy of task 'point_reach', not 'halfcheetah_running'" in wrong.stderr
@@ -706,6 +717,22 @@ def test_policy_command_rolls_a_checkpoint_and_refuses_another_tasks(tmp_path):
     junk.write_bytes(b"not a checkpoint")
     refused = cli("policy", str(junk), cwd=tmp_path, env=cli_env())
     assert refused.returncode == 2 and "not an APEX policy checkpoint" in refused.stderr
+
+
+def test_a_policy_is_rolled_as_long_as_chapter_4s_episodes_by_default(tmp_path):
+    """Humanoid standup: APEX trains and evaluates on 500 steps (section 4.4), not the environment's 1000."""
+    from workers.policy.evaluate import roll_policy
+
+    task = make_task("humanoid_standup")
+    env = task.make_env()
+    try:
+        obs_dim = len(task.observe(env.reset(seed=0)[0]))
+    finally:
+        env.close()
+    path = tmp_path / "policy.npz"
+    path.write_bytes(PolicyTrainer(0, obs_dim=obs_dim, action_dim=task.action_dim, task=task.name).weights().to_bytes())
+    assert roll_policy(path, None).steps == 500
+    assert roll_policy(path, None, steps=7).steps == 7
 
 
 def test_benchmark_functions_measure_through_role_groups():

@@ -51,6 +51,7 @@ from pydantic import Field
 from workers.data import EpisodeBuffer, Trajectory
 from workers.methods.base import Artifact, MethodSettings, Program, RoleSpec, RoundReport, TrialSpec
 from workers.planning import PlannerConfig
+from workers.policy.evaluate import CHAPTER_4_EPISODE_STEPS
 from workers.policy.expert import ExpertSettings, ExpertSwitches
 from workers.policy.network import PolicyWeights
 from workers.policy.training import PolicySettings, PolicyTrainer, TrainReport
@@ -73,8 +74,6 @@ TABLE_11_WINDOW: dict[str, int] = {
     "door_sparse": 100,
 }
 """W of Table 11: the policy trains on the latest W x n rollouts; other tasks default to 50."""
-CHAPTER_4_EPISODE_STEPS: dict[str, int] = {"humanoid_standup": 500}
-"""Episode lengths that chapter 4 changes (section 4.4: Humanoid standup runs 500 steps)."""
 TABLE_9: dict[tuple[str, int], dict[str, float]] = {
     ("halfcheetah_running", 45): {"expert": 5556, "policy": 4847, "icem": 3488},
     ("halfcheetah_running", 100): {"expert": 7202, "policy": 5596, "icem": 5235.9},

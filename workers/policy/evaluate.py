@@ -23,8 +23,14 @@ class PolicyRollouts(NamedTuple):
     version: int
     returns: list[float]
     successes: list[bool | None]
+    steps: int
+    """Steps per episode."""
     frames_note: str | None
     """Where the frame strip went, or why there is none."""
+
+
+CHAPTER_4_EPISODE_STEPS: dict[str, int] = {"humanoid_standup": 500}
+"""Episode lengths that chapter 4 changes (section 4.4: Humanoid standup runs 500 steps)."""
 
 
 def read_checkpoint(path: str | Path, task: str | None) -> Policy:
@@ -78,12 +84,13 @@ def roll_policy(
     frames: str | Path | None = None,
     task_options: dict[str, Any] | None = None,
 ) -> PolicyRollouts:
-    """Roll the policy of a checkpoint for ``episodes`` episodes (seeds seed, seed + 1, ...)."""
+    """Roll the policy of a checkpoint for ``episodes`` episodes (seeds seed, seed + 1, ...) of ``steps`` steps
+    (default: as long as chapter 4's episodes of the task, which APEX trains and evaluates on)."""
     from workers.tasks import make_task
 
     policy = read_checkpoint(path, task_name)
     task = make_task(task_name or policy.task, task_options)
-    steps = steps or task.episode_length
+    steps = steps or CHAPTER_4_EPISODE_STEPS.get(task.name, task.episode_length)
     env = task.make_env()
     note = None
     render_env = None
@@ -122,4 +129,4 @@ def roll_policy(
         env.close()
         if render_env is not None:
             render_env.close()
-    return PolicyRollouts(task.name, policy.version, returns, successes, note)
+    return PolicyRollouts(task.name, policy.version, returns, successes, steps, note)

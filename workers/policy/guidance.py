@@ -102,8 +102,10 @@ class GuidedObjective:
     def __call__(self, batch: CostBatch, iteration: int) -> np.ndarray:
         main = np.asarray(batch.main(), dtype=np.float64)
         prelim = preliminary_elites(main, self.elites)
-        elite_main = main[prelim]
-        finite = elite_main[np.isfinite(elite_main)]
+        # Both ranges of eq. 17 over the same samples: the preliminary elites whose J is finite (a diverged
+        # simulation's guidance distance must not widen R(C) and so shrink lambda).
+        prelim = prelim[np.isfinite(main[prelim])]
+        finite = main[prelim]
         main_range = float(np.ptp(finite)) if len(finite) else 0.0
         cost = main.copy()
         lambdas: dict[str, float] = {}
@@ -112,7 +114,8 @@ class GuidedObjective:
                 continue
             values = np.asarray(batch.components[term.name], dtype=np.float64)
             if term.adaptive:
-                weight = float(term.c * main_range / (np.ptp(values[prelim]) + self.epsilon))
+                spread = float(np.ptp(values[prelim])) if len(prelim) else 0.0
+                weight = float(term.c * main_range / (spread + self.epsilon))
             else:
                 weight = float(term.fixed)
             lambdas[term.name] = weight
