@@ -737,8 +737,9 @@ def cmd_model(args) -> int:
         )
         return EXIT_BAD_INPUT
     dims = tuple(args.dims) if args.dims else None
-    if dims is not None and not all(0 <= d < model.obs_dim for d in dims):
-        print(f"icemlab: --dims must lie in 0..{model.obs_dim - 1}, got {list(dims)}", file=sys.stderr)
+    if dims is not None and not (all(0 <= d < model.obs_dim for d in dims) and len(set(dims)) == len(dims)):
+        print(f"icemlab: --dims must be distinct dimensions in 0..{model.obs_dim - 1}, got {list(dims)}",
+              file=sys.stderr)  # fmt: skip
         return EXIT_BAD_INPUT
     config = model.config
     print(

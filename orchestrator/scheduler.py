@@ -318,7 +318,6 @@ class SweepScheduler:
         self._active: list[Attempt] = []
         self._states: list[TrialState] = []
         """This session's trials; the ones it launched and has not closed are its to close on an abort."""
-        """Trials waiting for CPUs or a retry's backoff."""
         self.allow_physics_change = allow_physics_change
         self.notice = notice or _print_notice
         self._provenance = provenance.current()
@@ -356,7 +355,12 @@ class SweepScheduler:
         detail = "Found RUNNING by `icemlab run --resume`, which continues the trial from its last checkpoint.\n"
         self.tracker.record_sweep_failure(sweep_run.run_id, DRIVER_LOST, cause, detail)
         for run in trial_runs:
-            if run.status == RUNNING:
+            if run.status != RUNNING:
+                continue
+            # An attempt with a record ended before the driver did (a trial waiting out a retry's backoff), or
+            # was found lost by an earlier resume whose own driver was lost before it launched the trial again.
+            recorded = f"failures/attempt_{run.attempts:03d}_"
+            if not any(path.startswith(recorded) for path in self.tracker.list_files(run.run_id, "failures")):
                 self.tracker.record_failure(run.run_id, run.attempts, DRIVER_LOST, cause, detail)
 
     def _refuse_a_busy_resume(self) -> None:
@@ -792,7 +796,8 @@ class SweepScheduler:
             except Exception:  # Ray itself may be going down with the same signal
                 pass
         problems: list[Exception] = []
-        for state in [s for s in self._states if s.launched_here and not s.closed_here]:
+        # A trial whose launch failed before its run was created has no run to close.
+        for state in [s for s in self._states if s.launched_here and not s.closed_here and s.run_id is not None]:
             try:
                 run = self.tracker.trial_run(state.run_id)
                 if run is not None and run.status == RUNNING:

@@ -8,6 +8,8 @@ a dead actor.
 
 from __future__ import annotations
 
+import pickle
+
 import pytest
 import toy_method
 
@@ -98,7 +100,7 @@ def test_a_round_that_fails_after_a_recovery_carries_the_recovery_to_the_driver(
     harmed.run_round(0), harmed.run_round(1)
     with pytest.raises(RoleWorkerLost) as lost:
         harmed.run_round(2)
-    failure = classify(lost.value)
+    failure = classify(pickle.loads(pickle.dumps(lost.value)))  # as it reaches the driver from the runner's process
     assert failure.kind == LOST_PROCESS and len(failure.recovered) == 1
     assert "a worker of role 'trainer' was lost: killed" in failure.recovered[0]
 

@@ -498,6 +498,40 @@ def test_a_run_whose_launch_the_store_broke_off_is_closed_with_the_error(tmp_pat
     assert child.status == KILLED and child.error_class == "driver_error" and "store refused" in child.error
 
 
+def test_a_lost_drivers_attempt_is_recorded_once_and_an_ended_attempt_not_again(tmp_path):
+    """Two resumes may find the same trial RUNNING (the first one's driver was lost before it relaunched it), and
+    a trial waiting out a retry's backoff has its attempt recorded already: neither gets a second record."""
+    sweep = toy_sweep(tmp_path, "lost_twice")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("lost_twice", "lost_twice", "hash", sweep.read_text(), {}, "dev")
+    lost = tracker.start_trial(parent, "lost", "lost", {"seed": 0}, {})
+    waiting = tracker.start_trial(parent, "waiting", "waiting", {"seed": 0}, {})
+    tracker.record_failure(waiting, 1, "lost_process", "a worker died", "")
+    for _ in range(2):
+        scheduler._record_a_lost_driver(tracker.find_sweep_run("lost_twice", "lost_twice"), tracker.trial_runs(parent))
+    assert tracker.list_files(lost, "failures") == ["failures/attempt_001_driver_lost.txt"]
+    assert history(tracker, lost, "failures/driver_lost") == [(1, 1.0)]
+    assert tracker.list_files(waiting, "failures") == ["failures/attempt_001_lost_process.txt"]
+    # The sweep's run keeps one record per lost driver.
+    assert len(tracker.list_files(parent, "failures")) == 2
+
+
+def test_an_abort_passes_over_a_trial_whose_run_was_never_created(tmp_path):
+    """The store failed inside start_trial: the trial is launched here but has no run to close."""
+    from orchestrator.scheduler import TrialState
+
+    sweep = toy_sweep(tmp_path, "no_run")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("no_run", "no_run", "hash", sweep.read_text(), {}, "dev")
+    unborn = TrialState(load_sweep(sweep).trials[0], 4, attempts=1)
+    unborn.launched_here = True
+    scheduler._states = [unborn]
+    scheduler._abort(parent, "interrupted", "interrupted (Ctrl-C)", "")
+    assert sweep_runs(default_tracking_uri(tmp_path), "no_run")[0].status == KILLED
+
+
 def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
     """A trial whose process was lost waits for its retry outside the running attempts; Ctrl-C then must end its
     run KILLED too, not leave it RUNNING under a KILLED sweep."""

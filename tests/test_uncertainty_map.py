@@ -115,7 +115,8 @@ def test_icemlab_model_describes_a_checkpoint_and_draws_its_map(tmp_path):
         ("missing", "no file"),
         ("ground_truth_task", "is not a task of the mbrl method"),
         ("unknown_task", "bridge_mace"),
-        ("dims_outside", "--dims must lie in 0..9"),
+        ("dims_outside", "--dims must be distinct dimensions in 0..9, got [3, 10]"),
+        ("dims_twice", "--dims must be distinct dimensions in 0..9, got [3, 3]"),
     ],
 )
 def test_icemlab_model_refuses_what_it_cannot_draw_and_writes_nothing(case, message, tmp_path, capsys):
@@ -130,6 +131,7 @@ def test_icemlab_model_refuses_what_it_cannot_draw_and_writes_nothing(case, mess
         "ground_truth_task": [str(checkpoint), "--task", "point_reach"],
         "unknown_task": [str(checkpoint), "--task", "bridge_mace"],
         "dims_outside": [str(checkpoint), "--task", "bridge_maze", "--dims", "3", "10"],
+        "dims_twice": [str(checkpoint), "--task", "bridge_maze", "--dims", "3", "3"],
     }[case]
     output = tmp_path / "map.png"
     assert main(["model", *args, "--output", str(output)]) == EXIT_BAD_INPUT

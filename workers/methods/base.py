@@ -88,8 +88,8 @@ class RoleWorkerLost(RuntimeError):
         self.role = role
         self.cause = cause
 
-    def __reduce__(self):  # travels between processes inside Ray's task errors
-        return type(self), (self.role, self.cause)
+    def __reduce__(self):  # travels between processes inside Ray's task errors, with what the runner noted on it
+        return type(self), (self.role, self.cause), self.__dict__
 
 
 class Pending(Protocol):

@@ -199,16 +199,6 @@ class PlannerConfig(BaseModel):
             raise ValueError("without a budget, set both iterations and population")
         return self
 
-    @model_validator(mode="after")
-    def _reused_elites_exist(self) -> PlannerConfig:
-        switched = [name for name in ("keep_elites", "shift_elites") if getattr(self, name)]
-        if switched and self.reused_elites() == 0:
-            raise ValueError(
-                f"{' and '.join(switched)} reuse floor(elite_fraction * elites) = floor({self.elite_fraction or 0.0:g}"
-                f" * {self.elites}) = 0 elites, so they would do nothing; raise elite_fraction (0.3 in Table 5)"
-            )
-        return self
-
     # ----------------------------------------------------------- resolving
     def resolved(self, task_beta: float) -> PlannerConfig:
         """The same config with every default made concrete (beta, iterations, population).
@@ -280,7 +270,8 @@ def _closest_spend(config: PlannerConfig, budget: int, schedules: list[tuple[int
     of equals)."""
     best, best_gap = None, math.inf
     for iterations, population in schedules:
-        trial = config.model_copy(update=dict(iterations=iterations, population=population))
+        # Sampled sequences only: re-evaluated kept elites come on top of a budget (see SPENDING_SWITCHES).
+        trial = config.model_copy(update=dict(iterations=iterations, population=population, reevaluate_elites=False))
         gap = abs(trial.trajectories_per_step() - budget)
         if gap < best_gap:
             best, best_gap = (iterations, population), gap
