@@ -253,8 +253,8 @@ def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple
     spends_as_tabled = all(getattr(config, name) == preset.get(name, defaults[name]) for name in SPENDING_SWITCHES)
     if config.population is not None:
         # Every CEM-iteration adds at least 2K trajectories: past the budget, more only go further past it.
-        spends = itertools.accumulate(max(int(config.population * (config.population_decay or 1.0) ** -i),
-                                          2 * config.elites) for i in range(budget))
+        longest = config.model_copy(update=dict(iterations=budget))
+        spends = itertools.accumulate(longest.population_sizes())
         iterations = 1 + sum(1 for spent in spends if spent < budget)
         return _closest_spend(config, budget, [(i, config.population) for i in range(1, min(iterations, budget) + 1)])
     if budget in table and spends_as_tabled and config.iterations in (None, table[budget][0]):
