@@ -14,14 +14,17 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
 DESCRIPTION = """\
-icemlab runs model-based planning experiments (iCEM and the CEM baselines on
-MuJoCo ground truth) as sweeps: a YAML file in, Ray trials out, every result
-in MLflow. Locally nothing needs to be started: Ray runs in-process and MLflow
-writes to ./mlflow.db.
+icemlab runs model-based planning experiments as sweeps: a YAML file in, Ray
+trials out, every result in MLflow. Methods: mpc (iCEM and the CEM baselines
+on MuJoCo ground truth), apex (iCEM distilled into a policy with DAgger),
+mbrl (PETS, PETSUS and RAZER on learned ensembles) and napsp (neural
+all-pairs shortest paths). Locally nothing needs to be started: Ray runs
+in-process and MLflow writes to ./mlflow.db.
 
   icemlab run sweeps/quickstart.yaml           run a sweep (local Ray, ./mlflow.db)
   icemlab ui                                   open the MLflow dashboard on ./mlflow.db
-  icemlab report sweeps/quickstart.yaml        table and plots, next to the thesis
+  icemlab report sweeps/quickstart.yaml        its table and plots
+  icemlab report sweeps/paper/door.yaml        the same, next to the thesis's Table 3
   icemlab run SWEEP --address ray://head:10001 --tracking-uri http://mlflow:5000
 """
 
@@ -88,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
         "line per problem and exit 2, or the trials and a plan (trials already finished in the store, "
         "core-hours, wall time here and on a cluster) and exit 0. Starts nothing.",
     )
-    validate.add_argument("sweep", type=Path)
+    validate.add_argument("sweep", type=Path, help="sweep YAML file")
     validate.add_argument("--quiet", action="store_true", help="print nothing when the sweep is valid")
     _add_plan_options(validate)
 
@@ -109,7 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     report_cmd = commands.add_parser(
         "report",
         help="summary table and plots of a sweep, next to the thesis",
-        description="Summarise the latest run of a sweep: mean +- sem per configuration with its 95% interval, "
+        description="Summarise the latest run of a sweep: the mean per configuration with its 95% interval "
+        "(Student's t over seeds below 15 runs, bootstrap from 15; Wilson for success rates; the sem in "
+        "summary.csv), "
         "next to the thesis's published figure where there is one (Tables 3 and 9), and each variant against the "
         "sweep's baseline (paired by seed, or by episode where episodes start alike); summary.csv, summary.txt "
         "and the plots that fit the sweep: budget curves (Fig. 5), variants, each method's curves over its steps, "
@@ -144,8 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Serve the MLflow UI for the tracking store (default ./mlflow.db) on 127.0.0.1.",
     )
     _add_tracking(ui)
-    ui.add_argument("--host", default="127.0.0.1")
-    ui.add_argument("--port", type=int, default=5000)
+    ui.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    ui.add_argument("--port", type=int, default=5000, help="port (default 5000)")
 
     bench = commands.add_parser(
         "bench",
@@ -156,12 +161,12 @@ def build_parser() -> argparse.ArgumentParser:
         "The default takes about two minutes on two cores; --full measures what the README's tables show "
         "(about ten minutes).",
     )
-    bench.add_argument("--full", action="store_true", help="HalfCheetah and Humanoid, 20 steps per budget")
-    bench.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: halfcheetah_running)")
+    bench.add_argument("--full", action="store_true", help="the README's tables: HalfCheetah and Humanoid, 20 steps per budget, every method")
+    bench.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: halfcheetah_running; with --full also humanoid_standup)")
     bench.add_argument("--budgets", nargs="+", type=int, default=None, help="budgets (default: 100 300)")
-    bench.add_argument("--steps", type=int, default=None, help="MPC steps measured per task and budget (default 10)")
+    bench.add_argument("--steps", type=int, default=None, help="MPC steps measured per task and budget (default 10; 20 with --full)")
     bench.add_argument("--threads", type=int, default=None, help="rollout threads (default: all CPUs)")
-    bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (no Ray)")
+    bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (--methods still starts a local Ray)")
     bench.add_argument(
         "--methods",
         nargs="*",
@@ -183,8 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     policy.add_argument("checkpoint", type=Path, help="policy checkpoint (.npz)")
     policy.add_argument("--task", default=None, help="the task to roll it on (default: the checkpoint's)")
-    policy.add_argument("--episodes", type=int, default=1, help="episodes (seeds SEED, SEED+1, ...)")
-    policy.add_argument("--seed", type=int, default=0, help="seed of the first episode")
+    policy.add_argument("--episodes", type=int, default=1, help="episodes (seeds SEED, SEED+1, ...; default 1)")
+    policy.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
     policy.add_argument(
         "--steps", type=int, default=None,
         help="steps per episode (default: chapter 4's, which APEX trains on: 500 on humanoid_standup, else the task's)",
@@ -208,7 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--epistemic-terms",
         choices=("means_and_variances", "means"),
         default="means_and_variances",
-        help="Var_E as eq. 24 writes it, or the variance of the members' means alone (razer.epistemic_terms)",
+        help="Var_E as eq. 24 writes it, or the variance of the members' means alone (razer.epistemic_terms; "
+        "default means_and_variances)",
     )
     model.add_argument(
         "--dims",
@@ -582,18 +588,23 @@ def cmd_report(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
-    from orchestrator.reproduce import ReproduceError, reproduce
-    from orchestrator.tracking import Tracker
+    from orchestrator.reproduce import ReproduceError, reproduce, same_figure
 
-    tracker = Tracker(args.tracking_uri)
+    uri, tracker = _existing_store(args.tracking_uri)
+    if tracker is None:
+        print(f"icemlab: no store at {uri}; pass the sweep's --tracking-uri", file=sys.stderr)
+        return EXIT_BAD_INPUT
     try:
         outcome = reproduce(tracker, args.run_id, args.threads)
     except ReproduceError as error:
         print(f"icemlab: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
     for key, recorded, now in outcome.figures:
-        same = "identical" if recorded == now else f"differs by {now - recorded:+.6g}"
+        same = "identical" if same_figure(recorded, now) else f"differs by {now - recorded:+.6g}"
         print(f"{key}: recorded {recorded!r}, now {now!r}: {same}")
+    if not outcome.figures:
+        print("nothing to compare: the run and the new run share none of the method's headline figures")
+        return 1
     for package, (recorded, now) in outcome.version_changes.items():
         print(f"note: the run used {package} {recorded}, this is {now}")
     if outcome.recorded_threads not in (None, outcome.threads):

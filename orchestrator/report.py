@@ -32,7 +32,11 @@ from orchestrator.tracking import TrialRun  # noqa: E402
 from workers.methods import METHODS  # noqa: E402
 
 RATE_METRICS = {"success", "box_drops"}
-"""Metrics that are rates of per-episode successes: intervals and tests treat them as binomial."""
+"""Metrics of method mpc that are rates of per-episode successes over the trial's ``episodes``: intervals and
+tests treat them as binomial."""
+EPISODES_SUFFIX = "_episodes"
+"""A summary figure ``<key>`` logged with ``<key>_episodes`` beside it is a rate over that many episodes (APEX's
+success rates, mbrl's final success rate): binomial too."""
 
 
 class TrialResult(NamedTuple):
@@ -110,7 +114,7 @@ class Group(NamedTuple):
     sem: float
     """Standard error of that mean over trials (0 with one trial)."""
     interval: statistics.Interval
-    """95% interval of the mean: bootstrap for returns, Wilson for success rates."""
+    """95% interval of the mean: Student's t over trials (a bootstrap from 15), Wilson for success rates."""
     iqm: statistics.Interval | None
     """Interquartile mean over trials with its bootstrap interval (five trials or more)."""
     successes: tuple[int, int] | None
@@ -165,8 +169,14 @@ class Summary(NamedTuple):
     """The sweep's baseline variants, when it names any (each group then carries its paired comparison)."""
 
 
-def _episodes(trial: TrialResult) -> int:
-    return int(float(trial.params.get("episodes", "1") or 1))
+def _rate_episodes(trial: TrialResult, metric: str, summary_key: str) -> int | None:
+    """How many episodes the trial's figure is a success rate over; None when it is not a rate of episodes."""
+    logged = trial.values.get(summary_key + EPISODES_SUFFIX)
+    if logged is not None and math.isfinite(logged) and logged >= 1:
+        return int(logged)
+    if trial.method == "mpc" and metric in RATE_METRICS:
+        return int(float(trial.params.get("episodes", "1") or 1))
+    return None
 
 
 def ablated_switches(task: str, params: dict[str, str]) -> list[str]:
@@ -213,12 +223,13 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
     if reference is not None and "planner.algorithm" in reference.match and ablated_switches(task, members[0].params):
         reference = None
     successes = None
-    if metric in RATE_METRICS and len(values):
-        episodes = [_episodes(m) for m in members if math.isfinite(m.values.get(summary_key, math.nan))]
+    episodes = [_rate_episodes(m, metric, summary_key) for m in members
+                if math.isfinite(m.values.get(summary_key, math.nan))]  # fmt: skip
+    if len(values) and None not in episodes:
         successes = (int(round(sum(v * e for v, e in zip(values, episodes)))), int(sum(episodes)))
         interval = statistics.rate_interval(*successes)
         mean = interval.estimate
-        comparison = statistics.compare_rate(*successes, reference.value) if reference else None
+        comparison = statistics.compare_rate(*successes, reference.value, reference.runs) if reference else None
     else:
         interval = statistics.mean_interval(values)
         mean = interval.estimate
@@ -538,7 +549,7 @@ def interval_caption(summary: Summary) -> str:
     metric = summary.metric.replace("_", " ")
     if summary.groups and all(g.successes is not None for g in summary.groups):
         return f"{metric} (rate over all episodes, 95% Wilson interval)"
-    return f"{metric} (mean over seeds, 95% bootstrap interval from three seeds on)"
+    return f"{metric} (mean over seeds, 95% interval: Student's t from two seeds on, a bootstrap from 15)"
 
 
 def variant_figure(summary: Summary):

@@ -123,8 +123,9 @@ def success_figure(summary: Any):
         axis.set_ylabel(name)
         axis.grid(alpha=0.3)
     success_axis.set_ylim(-0.02, 1.02)
-    success_axis.set_title("frozen model: success (thesis Fig. 19a: PETS 0.58, RAZER up to 0.96)", fontsize=9)
-    return_axis.set_title("frozen model: return (dashed: PETS)", fontsize=9)
+    success_axis.set_title("frozen model: success, +- sem over seeds (thesis Fig. 19a: PETS 0.58, RAZER up to 0.96)",
+                           fontsize=9)  # fmt: skip
+    return_axis.set_title("frozen model: return, +- sem over seeds (dashed: PETS)", fontsize=9)
     success_axis.legend(fontsize=7)
     figure.tight_layout()
     return figure
@@ -189,7 +190,7 @@ def drop_rate_figure(summary: Any, option: str | None = None):
     axis.set_xlabel(option.removeprefix("task_options."))
     axis.set_ylabel(key_used.replace("_", " "))
     axis.set_ylim(-0.02, 1.02)
-    return _finished(figure, axis, "frozen rows: failure rate against the noise (thesis Fig. 19b: RAZER < 0.2)")
+    return _finished(figure, axis, "frozen rows: failure rate against the noise, +- sem over seeds (thesis Fig. 19b: RAZER < 0.2)")
 
 
 def coverage_figure(summary: Any):
@@ -206,7 +207,7 @@ def coverage_figure(summary: Any):
     axis.barh(positions, [r[1] for r in rows], xerr=[r[2] for r in rows], capsize=3, color="tab:green")
     axis.set_yticks(positions, [f"{r[0]} (n={r[3]})" for r in rows])
     axis.invert_yaxis()
-    axis.set_xlabel("state coverage after the last iteration (fraction of 50 x 50 cells)")
+    axis.set_xlabel("state coverage after the last iteration (fraction of 50 x 50 cells), +- sem over seeds")
     axis.grid(alpha=0.3, axis="x")
     figure.tight_layout()
     return figure

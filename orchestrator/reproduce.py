@@ -14,6 +14,7 @@ that count is the default.
 from __future__ import annotations
 
 import json
+import math
 import tempfile
 from typing import NamedTuple
 
@@ -41,7 +42,13 @@ class Reproduction(NamedTuple):
 
     @property
     def identical(self) -> bool:
-        return all(recorded == now for _, recorded, now in self.figures)
+        """Every headline figure as recorded; false when there was none to compare."""
+        return bool(self.figures) and all(same_figure(recorded, now) for _, recorded, now in self.figures)
+
+
+def same_figure(recorded: float, now: float) -> bool:
+    """Equal, where a figure with nothing to measure (nan: a threshold never reached) equals itself."""
+    return recorded == now or (math.isnan(recorded) and math.isnan(now))
 
 
 def reproduce(tracker: Tracker, run_id: str, cpus: int | None = None) -> Reproduction:

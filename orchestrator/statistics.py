@@ -5,19 +5,26 @@ analysis of means; the power of a rate test is the closed-form normal
 approximation (Cohen's h), which statsmodels' solver fails on for very large
 effects.
 
-* Intervals (95%): for returns a bootstrap of the runs' mean (BCa); for
-  success rates the Wilson score interval of the successes; for five runs or
-  more also the interquartile mean (IQM, the mean of the middle 50% of runs,
+* Intervals (95%): for returns Student's t interval of the runs' mean below
+  ``BOOTSTRAP_MIN_RUNS`` runs and a bootstrap (BCa) from there on (the
+  bootstrap of a handful of runs undercovers: about 71% of true means with
+  three runs, 86% with five); for success rates the Wilson score interval of
+  the successes; for five runs or more also the interquartile mean (IQM, the mean of the middle 50% of runs,
   as rliable defines it) with a bootstrap interval. rliable itself does not
   import beside this stack (its ``arch`` dependency fails with pandas 3), and
   with one task per configuration its stratified bootstrap is the plain
   bootstrap of runs used here.
-* Verdicts against a reference: an exact binomial test of the measured
-  successes against a published success rate; for returns Welch's t-test
+* Verdicts against a reference: for a published success rate over a known
+  number of runs Fisher's exact test of the two samples (the published rate
+  is itself an estimate: 9 of 10 against 50 of 50 is p = 0.17, not 0); an
+  exact binomial test against the rate taken as exact when the run count is
+  not published; for returns Welch's t-test
   against the published mean, spread and run count (a one-sample t-test when
   the reference gives no spread, or one run). Tests are two-sided at the 5%
   level: ``below`` or ``above`` (the side of the observed difference) when
-  the difference is significant, ``consistent`` when it is not. A one-sided
+  the difference is significant, ``consistent`` when it is not, and
+  ``untested`` when no test is defined (one run, or constant runs against a
+  mean without a spread): never a verdict without a test. A one-sided
   test in the direction the data happen to point would call a true null
   ``below`` or ``above`` in about 10% of comparisons, not 5%.
 * Variants against a baseline on the same seeds (a sweep's ``baseline``):
@@ -68,7 +75,7 @@ class Comparison(NamedTuple):
     """A measured figure against a published one."""
 
     verdict: str
-    """consistent, below or above."""
+    """consistent, below, above, or untested (no test is defined for the data)."""
     test: str
     """The test that decided it."""
     p_value: float
@@ -81,17 +88,21 @@ class Comparison(NamedTuple):
     published runs (their own spread over their few runs bounds the test)."""
 
 
-MIN_BOOTSTRAP_RUNS = 3
-"""Below this many runs a bootstrap interval says nothing; none is given."""
+BOOTSTRAP_MIN_RUNS = 15
+"""From this many runs on the mean's interval is a bootstrap; below, Student's t (whose coverage holds for
+few runs of roughly normal returns, where the bootstrap's does not)."""
 
 
 def mean_interval(values: np.ndarray) -> Interval:
-    """The runs' mean with a 95% bootstrap (BCa) interval, from three runs on."""
+    """The runs' mean with a 95% interval: Student's t from two runs on, a bootstrap (BCa) from 15."""
     values = np.asarray(values, dtype=float)
     if len(values) == 0:
         return Interval(math.nan, math.nan, math.nan)
-    if len(values) < MIN_BOOTSTRAP_RUNS or np.ptp(values) == 0:
+    if len(values) < 2 or np.ptp(values) == 0:
         return Interval(float(values.mean()), math.nan, math.nan)
+    if len(values) < BOOTSTRAP_MIN_RUNS:
+        low, high = stats.t.interval(LEVEL, len(values) - 1, loc=values.mean(), scale=stats.sem(values))
+        return Interval(float(values.mean()), float(low), float(high))
     result = stats.bootstrap((values,), np.mean, confidence_level=LEVEL, n_resamples=BOOTSTRAP_RESAMPLES,
                              random_state=0)  # fmt: skip
     return Interval(float(values.mean()), float(result.confidence_interval.low), float(result.confidence_interval.high))
@@ -123,34 +134,59 @@ def rate_interval(successes: int, trials: int) -> Interval:
     return Interval(successes / trials, float(interval.low), float(interval.high))
 
 
+UNTESTED = Comparison("untested", "too few runs to test", math.nan, None)
+"""No test is defined for the data: the report says so rather than giving a verdict."""
+
+
 def _verdict(p_value: float, below: bool) -> str:
-    if not p_value < ALPHA:  # also an undefined (nan) p-value: no verdict without a test
+    if math.isnan(p_value):
+        return "untested"
+    if not p_value < ALPHA:
         return "consistent"
     return "below" if below else "above"
 
 
-def compare_rate(successes: int, trials: int, published: float) -> Comparison:
-    """Exact binomial test of ``successes`` out of ``trials`` against a published success rate."""
+def compare_rate(successes: int, trials: int, published: float, published_runs: int | None = None) -> Comparison:
+    """``successes`` out of ``trials`` against a published success rate: Fisher's exact test against the
+    published successes when ``published_runs`` says how many runs the rate came from, else the exact binomial
+    test with the published rate taken as exact."""
+    if trials == 0:
+        return UNTESTED
     observed = successes / trials
-    p_value = float(stats.binomtest(successes, trials, published).pvalue)
+    if published_runs:
+        theirs = int(round(published * published_runs))
+        table = [[successes, trials - successes], [theirs, published_runs - theirs]]
+        p_value = float(stats.fisher_exact(table).pvalue)
+        test = "Fisher exact"
+        published = theirs / published_runs
+    else:
+        p_value = float(stats.binomtest(successes, trials, published).pvalue)
+        test = "exact binomial"
     verdict = _verdict(p_value, observed < published)
-    needed = None
-    if verdict == "consistent" and observed != published:
-        needed = _episodes_to_detect(observed, published)
-    return Comparison(verdict, "exact binomial", p_value, needed)
+    if verdict != "consistent" or observed == published:
+        return Comparison(verdict, test, p_value, None)
+    needed = _episodes_to_detect(observed, published, published_runs)
+    return Comparison(verdict, test, p_value, needed, attainable=needed is not None)
 
 
-def _episodes_to_detect(observed: float, published: float) -> int | None:
-    """One-sample test of a proportion (Cohen's h, normal approximation) at 5%, two-sided, 80% power.
+def _episodes_to_detect(observed: float, published: float, published_runs: int | None = None) -> int | None:
+    """Episodes for a test of proportions (Cohen's h, normal approximation) at 5%, two-sided, 80% power.
 
-    n = ((z_(1 - alpha) + z_power) / h)^2 in closed form: a numerical power solver fails to converge for
-    effects so large that a single episode would do (0 of 1 against 0.9).
+    Against an exact rate n = (z / h)^2 with z = z_(1 - alpha/2) + z_power, in closed form: a numerical power
+    solver fails to converge for effects so large that a single episode would do (0 of 1 against 0.9). Against
+    m published runs the test's standard error is sqrt(1/n + 1/m), so n = z^2 / (h^2 - z^2 / m); None when
+    h^2 <= z^2 / m, where the published runs alone leave the difference undetectable at 80% power.
     """
     effect = abs(2 * math.asin(math.sqrt(observed)) - 2 * math.asin(math.sqrt(published)))
     if effect == 0:
         return None
     z = stats.norm.ppf(1 - ALPHA / 2) + stats.norm.ppf(POWER)
-    return max(1, int(math.ceil((z / effect) ** 2)))
+    if published_runs is None:
+        return max(1, int(math.ceil((z / effect) ** 2)))
+    margin = effect**2 - z**2 / published_runs
+    if margin <= 0:
+        return None
+    return max(1, int(math.ceil(z**2 / margin)))
 
 
 def compare_mean(values: np.ndarray, published: float, spread: float | None, spread_kind: str | None,
@@ -165,7 +201,7 @@ def compare_mean(values: np.ndarray, published: float, spread: float | None, spr
         published_std = spread * math.sqrt(runs) if spread_kind == "sem" else spread
     welch = bool(published_std)
     if n < 2 or (std == 0 and not welch):
-        return Comparison("consistent", "too few runs to test", math.nan, None)
+        return UNTESTED
     mean = float(values.mean())
     if welch:
         result = stats.ttest_ind_from_stats(mean, std, n, published, published_std, runs, equal_var=False)

@@ -499,12 +499,23 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
         problem = parameter_path_problem(str(path), method)
         if problem:
             problems.append(SweepProblem(file, node_line(root, ("parameters", path)), f"parameters.{path}", problem))
+            continue
+        values = parameters[path].get("values") if isinstance(parameters[path], dict) else None
+        for value in values if isinstance(values, list) else []:
+            problem = _replaced_base_problem(base, str(path), value, f"parameter {path!r}")
+            if problem:
+                problems.append(
+                    SweepProblem(file, node_line(root, ("parameters", path)), f"parameters.{path}", problem)
+                )
+                break
     variants = data.get("variants") or []
     for index, variant in enumerate(variants if isinstance(variants, list) else []):
         if not isinstance(variant, dict):
             continue
         for key in variant:
             problem = None if key == "name" else parameter_path_problem(str(key), method)
+            if problem is None and key != "name":
+                problem = _replaced_base_problem(base, str(key), variant[key], f"variant {variant.get('name')!r}")
             if problem:
                 problems.append(SweepProblem(file, node_line(root, ("variants", index, key)), str(key), problem))
             elif key in parameters:
@@ -526,6 +537,31 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
             f"its metrics: {', '.join(program.metrics)}"
         )))  # fmt: skip
     return problems
+
+
+def _replaced_base_problem(base: Any, path: str, value: Any, setter: str) -> str | None:
+    """Why setting ``path`` to the mapping ``value`` would silently drop keys ``base`` sets there, or None.
+
+    An override sets its path to its value as a whole (``_set_path``), so a
+    variant ``distance: {cap: null}`` replaces base's entire ``distance`` block
+    and loses, say, its ``hidden`` sizes: an ablation of one field would change
+    others with it. Such an override is refused with the dotted path to write.
+    """
+    if not isinstance(value, dict):
+        return None
+    node = base
+    for part in path.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    if not isinstance(node, dict):
+        return None
+    dropped = sorted(str(key) for key in node if key not in value)
+    if not dropped:
+        return None
+    example = f"{path}.{next(iter(value))}" if value else f"{path}.<field>"
+    return (
+        f"{setter} replaces the whole of base's {path}, dropping {', '.join(f'{path}.{k}' for k in dropped)}; "
+        f"to change single fields, set them by dotted path (e.g. {example}), or restate the dropped keys"
+    )
 
 
 def _set_path(config: dict[str, Any], path: str, value: Any) -> None:
@@ -615,6 +651,8 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
             target = "planner.algorithm" if parameter == "algorithm" else parameter
             if path == target or path.startswith(target + "."):
                 return node_line(root, location)
+        if path == "task":  # set at the top level when no parameter or variant sets it
+            return node_line(root, ("task",))
         return node_line(root, ("base", *path.split(".")))
 
     task = config["task"]

@@ -147,4 +147,30 @@ def read_yaml(path: Path) -> tuple[str, Any, yaml.Node | None]:
         if context and context_mark is not None and context_mark.line + 1 != line:
             reason += f" ({context} on line {context_mark.line + 1})"
         raise SweepError([SweepProblem(file, line, "(yaml)", f"YAML syntax error: {reason}")]) from None
+    repeated = duplicate_keys(file, root)
+    if repeated:
+        raise SweepError(repeated)
     return text, data, root
+
+
+def duplicate_keys(file: str, root: yaml.Node | None, path: tuple[str, ...] = ()) -> list[SweepProblem]:
+    """A key written twice in one mapping: YAML loaders keep the last silently, so one of the two settings a
+    user wrote would be dropped without a word."""
+    problems: list[SweepProblem] = []
+    if isinstance(root, yaml.MappingNode):
+        first: dict[str, int] = {}
+        for key, value in root.value:
+            name = str(key.value)
+            line = key.start_mark.line + 1
+            where = ".".join((*path, name))
+            if name in first:
+                problems.append(SweepProblem(file, line, where, (
+                    f"{name!r} is written twice in this mapping (first on line {first[name]}); keep one"
+                )))  # fmt: skip
+            else:
+                first[name] = line
+            problems += duplicate_keys(file, value, (*path, name))
+    elif isinstance(root, yaml.SequenceNode):
+        for index, item in enumerate(root.value):
+            problems += duplicate_keys(file, item, (*path, str(index)))
+    return problems

@@ -6,6 +6,8 @@ expert episode and a trained policy on Fetch and takes minutes: marker slow.
 
 from __future__ import annotations
 
+import math
+
 import os
 from pathlib import Path
 
@@ -549,6 +551,22 @@ def test_iterations_report_every_phase_and_keep_the_window(window_counts, window
     assert weights.version == 6 and weights.task == "point_reach"
     summary = reports[-1].summary
     assert summary["final_policy_return"] == pytest.approx(np.mean([r.metrics["policy_return"] for r in reports]))
+
+
+def test_a_success_summary_carries_the_episodes_behind_it():
+    """Reports test a success figure as a rate of episodes: the last 5 iterations' policy rollouts (2 each), and
+    the evaluations of those iterations that evaluated (3 episodes each)."""
+    spec = trial(evaluation_episodes=3, evaluate_every=2)
+    roles = {s.name: LocalRoleGroup.build(s) for s in ApexProgram.roles_for(spec, 1, {})}
+    program = ApexProgram(spec, roles, 1)
+    nan = math.nan
+    program.history = {
+        "policy_success": [0.0, 0.5, 0.5, 1.0, 0.5, 1.0, 0.0],
+        "evaluation_success": [nan, 1 / 3, nan, 2 / 3, nan, 1.0, 1.0],
+    }
+    summary = program._summary()
+    assert summary["final_policy_success_episodes"] == 10 and summary["final_evaluation_success_episodes"] == 9
+    assert summary["final_evaluation_success"] == pytest.approx(8 / 9)
 
 
 def test_without_dagger_the_window_holds_w_times_n_expert_rollouts_either_way():

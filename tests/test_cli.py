@@ -119,6 +119,29 @@ BAD_SWEEPS = {
         (3, "baseline"),
         "baseline 'ful' is not a variant of this sweep; its variants: full, no-elites",
     ),
+    "key_written_twice": (
+        "name: x\ntask: point_reach\nbase:\n  planner: {budget: 100}\n  planner: {budget: 300}\n",
+        (5, "base.planner"),
+        "'planner' is written twice in this mapping (first on line 4)",
+    ),
+    "variant_replaces_a_base_block": (
+        "name: x\ntask: point_reach\nbase:\n  planner: {horizon: 10, budget: 100}\nvariants:\n"
+        "  - name: a\n  - {name: b, planner: {budget: 50}}\n",
+        (7, "planner"),
+        "variant 'b' replaces the whole of base's planner, dropping planner.horizon; "
+        "to change single fields, set them by dotted path (e.g. planner.budget)",
+    ),
+    "grid_value_replaces_a_base_block": (
+        "name: x\ntask: point_reach\nbase:\n  planner: {horizon: 10}\nparameters:\n"
+        "  planner:\n    values: [{horizon: 10}, {budget: 50}]\n",
+        (6, "parameters.planner"),
+        "parameter 'planner' replaces the whole of base's planner, dropping planner.horizon",
+    ),
+    "task_of_another_method": (
+        "name: x\ntask: halfcheetah_running\nmethod: mbrl\nbase:\n  iterations: 2\n",
+        (2, "task"),
+        "method mbrl plans on a learned model of a chapter-5 task",
+    ),
     "too_many_trials": (
         "name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n"
         "  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n",

@@ -175,6 +175,7 @@ def test_the_loop_collects_trains_and_evaluates(tiny_run):
     assert summary["frozen/pets/success_rate"] == pets["frozen/success_rate"]
     assert summary["frozen_best_success_rate"] == razer["frozen/success_rate"]
     assert summary["final_dataset_size"] == 40 and "final_coverage" in summary and "final_return" in summary
+    assert summary["final_success_rate_episodes"] == 2  # one planned episode per iteration: a rate of 2 episodes
     # Summary keys never collide with round keys (both go to one run, the summary at step 0).
     assert not set(summary) & {k for r in reports for k in r.metrics}
 

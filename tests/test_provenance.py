@@ -99,3 +99,31 @@ def test_validate_plans_from_the_store_or_a_calibration(tmp_path):
     assert planned.returncode == 0 and planned.stdout.count("(finished)") == 2
     assert "plan: 1 trial(s) to run, 2 already finished" in planned.stdout
     assert "from 2 past run(s)" in planned.stdout  # the finished trials' measured cost
+
+
+def test_a_figure_with_nothing_to_measure_reproduces_as_itself_and_no_figures_prove_nothing():
+    """napsp logs nan for a threshold never reached: nan again is identical. A reproduction that shares no
+    headline figure with its run is not called identical."""
+    from orchestrator.reproduce import Reproduction
+
+    def outcome(figures):
+        return Reproduction("id", figures, {}, 1, 1)
+
+    assert outcome([("episodes_to_success", float("nan"), float("nan")), ("eval_success", 0.5, 0.5)]).identical
+    assert not outcome([("episodes_to_success", float("nan"), 120.0)]).identical
+    assert not outcome([]).identical
+
+
+def test_reproduce_says_when_there_is_nothing_to_compare_or_no_store(tmp_path):
+    sweep = write_sweep(tmp_path, "toy_bare", method="toy", base={"rounds": 1, "steps": 2}, algorithm=None)
+    (trial,) = load_sweep(sweep).trials
+    missing = cli("reproduce", "0123456789abcdef0123456789abcdef", cwd=tmp_path)
+    assert missing.returncode == 2 and "no store at" in missing.stderr
+    assert not (tmp_path / "mlflow.db").exists()  # asking created none
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("toy_bare", "toy_bare", "hash", sweep.read_text(), {}, "dev")
+    artifacts = {"trial.json": json.dumps(trial.config.canonical())}
+    run_id = tracker.start_trial(parent, trial.key, "toy", {PARAM_THREADS: 1}, {}, artifacts)
+    tracker.end_trial(run_id, FINISHED, {})  # finished without its summary figures
+    bare = cli("reproduce", run_id, cwd=tmp_path)
+    assert bare.returncode == 1 and "nothing to compare" in bare.stdout and "identical" not in bare.stdout

@@ -85,8 +85,83 @@ def test_a_reference_of_one_run_or_constant_runs_are_tested_only_where_a_test_is
     single = statistics.compare_mean(np.array([9.0, 10.0, 11.0, 12.0]), 8.0, 1.0, "std", 1)
     assert single.test == "one-sample t-test" and math.isfinite(single.p_value)
     constant = statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", None)
-    assert constant.test == "too few runs to test" and constant.verdict == "consistent"
+    assert constant.test == "too few runs to test" and constant.verdict == "untested"
+    assert statistics.compare_mean(np.array([5.0]), 3.0, 1.0, "std", 10).verdict == "untested"
+    assert statistics._verdict(math.nan, below=True) == "untested"  # whatever test returns an undefined p-value
     assert statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", 10).test == "Welch t-test"
+
+
+def test_a_published_rate_over_known_runs_is_tested_as_a_second_sample():
+    """Table 3's rates come from 50 or 100 runs: 9 of 10 against 50 of 50 is Fisher's p = 0.17, not the
+    binomial test's p = 0 against an exact 1.0; the rate stays exact where no run count is published."""
+    fisher = statistics.compare_rate(9, 10, 1.0, 50)
+    assert fisher.verdict == "consistent" and fisher.test == "Fisher exact"
+    assert fisher.p_value == pytest.approx(0.167, abs=0.002)
+    assert statistics.compare_rate(9, 10, 1.0).verdict == "below"
+    assert statistics.compare_rate(5, 40, 0.81, 100).verdict == "below"
+
+
+def test_episodes_to_settle_against_published_runs_reach_80_percent_power_or_are_not_named():
+    """Against 100 published runs the episodes named detect the gap in about 80% of simulated Fisher tests; a gap
+    the published runs alone cannot resolve names none."""
+    from scipy import stats
+
+    comparison = statistics.compare_rate(6, 10, 0.81, 100)
+    assert comparison.verdict == "consistent" and comparison.attainable
+    needed = comparison.runs_needed
+    assert needed > statistics.compare_rate(6, 10, 0.81).runs_needed  # the published runs' own error counts
+    rng = np.random.default_rng(0)
+    ours, theirs = rng.binomial(needed, 0.6, size=600), rng.binomial(100, 0.81, size=600)
+    detected = [stats.fisher_exact([[a, needed - a], [b, 100 - b]]).pvalue < 0.05 for a, b in zip(ours, theirs)]
+    assert 0.72 <= np.mean(detected) <= 0.88
+    # Fetch's 73 of 100 against 81 of 100: h^2 = 0.037 is below z^2 / 100 = 0.078, so no count of own episodes does.
+    hopeless = statistics.compare_rate(73, 100, 0.81, 100)
+    assert hopeless.verdict == "consistent" and hopeless.runs_needed is None and not hopeless.attainable
+
+
+def test_the_interval_of_a_few_runs_mean_covers_the_true_mean_95_percent_of_the_time():
+    """Three normal runs: Student's t covers the true mean in about 95% of draws, where a bootstrap of three runs
+    covers about 71%."""
+    rng = np.random.default_rng(0)
+    covered = []
+    for _ in range(400):
+        interval = statistics.mean_interval(rng.normal(5236.0, 167.0, size=3))
+        covered.append(interval.low <= 5236.0 <= interval.high)
+    assert 0.92 <= np.mean(covered) <= 0.98
+    two = statistics.mean_interval(np.array([1.0, 3.0]))
+    assert two.low == pytest.approx(2.0 - 12.706, abs=1e-3)  # t(0.975, 1) * sem 1
+
+
+def test_success_figures_logged_with_their_episodes_are_rates_of_episodes():
+    """APEX's and mbrl's success summaries say how many episodes they average (``<key>_episodes``): 0.6, 0.4 and
+    0.2 over 5 episodes each are 6 of 15, not three trials' rates rounded to 1 of 3; without the count the figure
+    stays a mean over seeds."""
+    from orchestrator.tracking import TrialRun
+
+    def run(seed, rate, episodes=None):
+        params = {"method": "mbrl", "task": "bridge_maze", "seed": str(seed)}
+        metrics = {"final_success_rate": rate} | ({"final_success_rate_episodes": episodes} if episodes else {})
+        return TrialRun(f"r{seed}", f"k{seed}", FINISHED, "name", params, {}, metrics)
+
+    counted = report.summarize([run(0, 0.6, 5), run(1, 0.4, 5), run(2, 0.2, 5)], "success", references=[])
+    (group,) = counted.groups
+    assert group.successes == (6, 15) and group.mean == pytest.approx(0.4)
+    (uncounted,) = report.summarize([run(0, 0.6), run(1, 0.4), run(2, 0.2)], "success", references=[]).groups
+    assert uncounted.successes is None and uncounted.mean == pytest.approx(0.4)
+
+
+def test_an_untested_comparison_is_not_written_as_consistent():
+    """Two APEX seeds that never succeed against Table 9's 0.99, with no episode count: no test is defined, and
+    the CSV says untested, not consistent."""
+    from orchestrator.tracking import TrialRun
+
+    params = {"method": "apex", "task": "door_sparse", "seed": "0"}
+    runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", params | {"seed": str(s)}, {}, {"final_policy_success": 0.0})
+            for s in (0, 1)]  # fmt: skip
+    reference = Reference(task="door_sparse", metric="policy_success", value=0.99, source="test", method="apex")
+    summary = report.summarize(runs, "policy_success", references=[reference])
+    (row,) = csv.DictReader(io.StringIO(report.to_csv(summary)))
+    assert row["verdict"] == "untested"
 
 
 def test_pairs_that_all_differ_by_the_same_amount_get_the_sign_test():

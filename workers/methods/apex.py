@@ -386,12 +386,18 @@ class ApexProgram(Program):
         return metrics
 
     def _summary(self) -> dict[str, float]:
+        # A success figure is logged with the episodes behind it, so that reports count it as a rate of episodes
+        # (a Wilson interval and a binomial test) rather than a mean over seeds.
+        episodes_per_iteration = {"expert": self.n, "policy": self.n, "evaluation": self.settings.evaluation_episodes}
         summary = {}
         for key, values in self.history.items():
             tail = np.array(values[-SUMMARY_ITERATIONS:], dtype=float)
             tail = tail[np.isfinite(tail)]
             if len(tail):
                 summary[f"final_{key}"] = float(tail.mean())
+                if key.endswith("_success"):
+                    per_iteration = episodes_per_iteration[key.removesuffix("_success")]
+                    summary[f"final_{key}_episodes"] = float(len(tail) * per_iteration)
         summary["final_weights_version"] = float(self.weights.version if self.weights else 0)
         return summary
 

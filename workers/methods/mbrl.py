@@ -921,6 +921,7 @@ class MbrlProgram(Program):
             successes = [s for s in self.history["success"][window] if not math.isnan(s)]
             if successes:
                 summary["final_success_rate"] = float(np.mean(successes))
+                summary["final_success_rate_episodes"] = float(len(successes))  # one episode per iteration
         grid = self._coverage_grid()
         if grid is not None:
             summary["final_coverage"] = float(np.mean(grid))
