@@ -232,7 +232,9 @@ class Sweep(_UserModel):
     @field_validator("baseline")
     @classmethod
     def _baselines_are_variants(cls, baseline: list[str], info: ValidationInfo) -> list[str]:
-        names = [variant.get("name") for variant in info.data.get("variants") or []]
+        if "variants" not in info.data:  # the variants themselves are invalid, and reported: nothing to check against
+            return baseline
+        names = [variant.get("name") for variant in info.data["variants"]]
         unknown = [name for name in baseline if name not in names]
         if unknown:
             known = ", ".join(map(str, names)) if names else "none (the sweep has no variants)"
@@ -444,7 +446,7 @@ def load_sweep(path: str | Path) -> LoadedSweep:
     try:
         sweep = Sweep.model_validate(data)
     except ValidationError as error:
-        problems = problems_from(error, file, root, Sweep)
+        problems = problems_from(error, file, root, Sweep, data=data)
         problems += _method_problems(data, file, root) if "base" not in {p.path.split(".")[0] for p in problems} else []
         raise SweepError(sorted_problems(problems)) from None
     problems = _method_problems(data, file, root)

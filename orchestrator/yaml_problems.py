@@ -8,6 +8,7 @@ misspelt key.
 from __future__ import annotations
 
 import difflib
+import re
 import types
 import typing
 from collections.abc import Iterable
@@ -89,14 +90,68 @@ def _did_you_mean(model: type[BaseModel], loc: tuple[Any, ...], key: str) -> str
 
 
 _UNION_MEMBERS = {"GridParameter", "RandomParameter", "SeedRange", "list[int]", "[key]"}
+_VALIDATOR_TAG = re.compile(r"^function-(after|before|wrap|plain)\[")
 
 
-def problems_from(error: ValidationError, file: str, root, model: type[BaseModel], prefix=()) -> list[SweepProblem]:
-    """Pydantic's errors as located problems (``prefix`` places the validated model inside the file)."""
+def _is_tag(part: Any) -> bool:
+    """A location part pydantic adds for a union member or a validator function: not a YAML key."""
+    return isinstance(part, str) and (part in _UNION_MEMBERS or bool(_VALIDATOR_TAG.match(part)))
+
+
+def _member(part: Any) -> str | None:
+    """The union member a location part names, also inside a validator tag ("function-after[f(), Model]")."""
+    if not isinstance(part, str):
+        return None
+    if part in _UNION_MEMBERS - {"[key]"}:
+        return part
+    inner = _VALIDATOR_TAG.match(part) and part.rstrip("]").rsplit(", ", 1)[-1]
+    return inner if inner in _UNION_MEMBERS else None
+
+
+def _meant_member(value: Any) -> str | None:
+    """The union member a value was written as: the others' complaints about it are noise."""
+    if isinstance(value, list):
+        return "list[int]"
+    if isinstance(value, dict):
+        if "distribution" in value:
+            return "RandomParameter"
+        if "values" in value:
+            return "GridParameter"
+        if "first" in value or "count" in value:
+            return "SeedRange"
+    return None
+
+
+def _other_member(loc: tuple[Any, ...], data: Any) -> bool:
+    """Whether an error is about a union member other than the one the written value meant."""
+    node = data
+    for part in loc:
+        member = _member(part)
+        if member is not None:
+            meant = _meant_member(node)
+            return meant is not None and member != meant
+        if _is_tag(part):
+            continue
+        if isinstance(node, dict):
+            node = node.get(part)
+        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+            node = node[part]
+        else:
+            return False
+    return False
+
+
+def problems_from(
+    error: ValidationError, file: str, root, model: type[BaseModel], prefix=(), data: Any = None
+) -> list[SweepProblem]:
+    """Pydantic's errors as located problems (``prefix`` places the validated model inside the file; ``data``,
+    the validated input, tells which member of a union a value was written as)."""
     problems = []
     for item in error.errors():
-        # Pydantic names union members in the location; they are not YAML keys.
-        loc = tuple(p for p in item["loc"] if p not in _UNION_MEMBERS)
+        if data is not None and _other_member(item["loc"], data):
+            continue
+        # Pydantic names union members and validator functions in the location; they are not YAML keys.
+        loc = tuple(p for p in item["loc"] if not _is_tag(p))
         message = item["msg"].removeprefix("Value error, ")
         if item["type"] == "extra_forbidden":
             message = f"unknown key{_did_you_mean(model, loc, str(loc[-1]))}"

@@ -164,6 +164,31 @@ def test_bad_sweeps_give_located_one_line_errors(case, tmp_path):
     assert PROBLEM_LINE.match(str(first)), str(first)
 
 
+def problems_of(tmp_path, text: str) -> list[tuple[int, str, str]]:
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(text)
+    with pytest.raises(SweepError) as error:
+        load_sweep(sweep)
+    return [(p.line, p.path, p.message) for p in error.value.problems]
+
+
+def test_a_union_value_is_judged_as_the_member_it_was_written_as(tmp_path):
+    """A random parameter gets the random parameter's complaint only, not a grid's "values missing"; a grid
+    parameter and a seed range likewise; pydantic's validator tags stay out of the path."""
+    random = "name: x\ntask: point_reach\nparameters:\n  planner.sigma_init:\n    distribution: uniform\n" \
+        "    low: 0.7\n    high: 0.3\n"
+    assert problems_of(tmp_path, random) == [(4, "parameters.planner.sigma_init", "low (0.7) is above high (0.3)")]
+    grid = "name: x\ntask: point_reach\nparameters:\n  planner.sigma_init:\n    values: []\nseeds: {first: 0}\n"
+    assert [(line, path) for line, path, _ in problems_of(tmp_path, grid)] == [
+        (5, "parameters.planner.sigma_init.values"), (6, "seeds.count")
+    ]
+
+
+def test_malformed_variants_do_not_make_a_baseline_unknown(tmp_path):
+    text = "name: x\ntask: point_reach\nbaseline: full\nvariants:\n  - name: full\n  - planner.budget: 50\n"
+    assert [message for _, _, message in problems_of(tmp_path, text)] == ["every variant needs a 'name'"]
+
+
 def test_binary_file_is_rejected(tmp_path):
     sweep = tmp_path / "binary.yaml"
     sweep.write_bytes(b"\x7fELF\x02\x01\x01\x00\x00\x00")
