@@ -32,7 +32,11 @@ DRIVER_LOST = "driver_lost"
 the ``--resume`` that finds them still RUNNING."""
 
 _NODE_MEMORY = re.compile(r"was ([\d.]+\s*[KMGT]?i?B) used / ([\d.]+\s*[KMGT]?i?B) limit")
-_MEMORY_WORDS = re.compile(r"out of memory|OOM|low on memory|memory usage|memory monitor", re.IGNORECASE)
+_MEMORY_WORDS = re.compile(r"out of memory|OutOfMemoryError|running low on memory|memory monitor", re.IGNORECASE)
+"""Words of a kill for memory: Ray's memory monitor ("killed due to the node running low on memory"), its
+OutOfMemoryError, a CUDA or Python "out of memory". Not "OOM" or "memory usage": every unexpected worker exit's
+message lists "(1) the process was killed by the OOM killer due to high memory usage" among its common causes,
+and a plain SIGKILL or crash would be reported as a kill for memory with advice to run fewer trials."""
 
 
 class Failure(NamedTuple):

@@ -121,3 +121,27 @@ def test_the_lost_process_backoff_grows_until_a_round_completes():
     assert [state.backoff() for _ in range(6)] == [*BACKOFF_SECONDS, BACKOFF_SECONDS[-1]]
     state.progressed()
     assert state.backoff() == BACKOFF_SECONDS[0]
+
+
+RAY_UNEXPECTED_EXIT = (
+    "The actor died unexpectedly before finishing this task.\n\tclass_name: ProgramRunner\n"
+    "The actor is dead because its worker process has died. Worker exit type: SYSTEM_ERROR Worker exit detail: "
+    "Worker unexpectedly exits with a connection error code 2. End of file. Some common causes include: (1) the "
+    "process was killed by the OOM killer due to high memory usage, (2) ray stop --force was called, or (3) the "
+    "worker crashed unexpectedly due to SIGSEGV or another unexpected error."
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "memory"),
+    [
+        (RAY_UNEXPECTED_EXIT, False),  # a SIGKILL or a crash: Ray lists the OOM killer among its possible causes
+        ("Task was killed due to the node running low on memory. Memory on the node was 20 GB used / 24 GB", True),
+    ],
+)
+def test_only_a_kill_for_memory_is_reported_as_one(text, memory):
+    from orchestrator.failures import LOST_PROCESS, classify
+
+    failure = classify(RoleWorkerLost("trainer", f"ActorDiedError: {text}"))
+    assert failure.kind == LOST_PROCESS and failure.memory is memory
+    assert ("killed for memory" in failure.cause) is memory
