@@ -212,6 +212,7 @@ def test_method_end_to_end_in_process():
     assert all(-1 <= v <= 1 for v in ranks.values()) and not any(k.startswith("maze/") for k in reports[0].metrics)
     summary = reports[-1].summary
     assert summary["total_episodes"] == 3 and summary["eval_success"] == pytest.approx(np.mean(success))
+    assert summary["eval_success_episodes"] == 3  # three evaluations of one episode: a rate of 3 episodes
     assert set(NapspProgram.metrics.values()) <= set(summary)
 
 

@@ -374,6 +374,9 @@ class NapspProgram(Program):
         summary: dict[str, float] = {"total_episodes": float(self.episodes)}  # "episodes" is a per-round metric
         if self.history["eval_success"]:
             summary["eval_success"] = float(self._rolling("eval_success"))
+            # The episodes behind that rolling rate, so that reports test it as a rate of episodes.
+            window = len(self.history["eval_success"][-self.settings.curve_window :])
+            summary["eval_success_episodes"] = float(window * self.settings.eval_episodes)
             summary["max_eval_success"] = float(np.max(self.history["eval_success"]))
             summary["eval_max_reward"] = float(self._rolling("eval_max_reward"))
             summary["episodes_to_success"] = self._first_crossing("eval_success", self.settings.success_threshold)
