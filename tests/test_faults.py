@@ -32,7 +32,7 @@ from orchestrator.tracking import FINISHED, Tracker, default_tracking_uri
 pytestmark = pytest.mark.slow
 
 KILL_EVERY_SECONDS = 15.0
-"""The killer's period, or a third of the fault-free run where that is shorter (the smoke sweeps take seconds):
+"""The killer's period, or a sixth of the fault-free run where that is shorter (the smoke sweeps take seconds):
 every stormy run sees kills."""
 MIN_KILL_PERIOD = 2.0
 
@@ -54,8 +54,10 @@ class Killer(threading.Thread):
     ``roles`` limits the targets to those roles ("runner" is the trial's ProgramRunner); None targets all.
     """
 
-    def __init__(self, scheduler: SweepScheduler, period: float, roles: tuple[str, ...] | None = None, seed: int = 0):
+    def __init__(self, scheduler: SweepScheduler, period: float, roles: tuple[str, ...] | None = None, seed: int = 0,
+                 limit: int | None = None):  # fmt: skip
         super().__init__(daemon=True)
+        self.limit = limit
         self.scheduler, self.period, self.roles = scheduler, period, roles
         self.random = random.Random(seed)
         self.stopped = threading.Event()
@@ -64,6 +66,8 @@ class Killer(threading.Thread):
     def run(self) -> None:
         started = time.monotonic()
         while not self.stopped.wait(self.period):
+            if self.limit is not None and len(self.kills) >= self.limit:
+                return
             running = [a for a in list(self.scheduler._active) if a.phase == "running"]
             actors = [
                 (name, actor)
@@ -106,12 +110,12 @@ class Killer(threading.Thread):
                 yield role, worker
 
 
-def run_sweep(directory, sweep, killer_period: float | None, roles: tuple[str, ...] | None = None):
+def run_sweep(directory, sweep, killer_period: float | None, roles: tuple[str, ...] | None = None, limit=None):
     """Run ``sweep`` with a fresh store in ``directory``, with a killer if a period is given."""
     loaded = load_sweep(sweep)
     tracker = Tracker(default_tracking_uri(directory))
     scheduler = SweepScheduler(loaded, tracker)
-    killer = Killer(scheduler, killer_period, roles) if killer_period else None
+    killer = Killer(scheduler, killer_period, roles, limit=limit) if killer_period else None
     started = time.monotonic()
     if killer:
         killer.start()
@@ -133,8 +137,11 @@ def calm_and_stormy(tmp_path, sweep, roles=None):
         calm_dir.mkdir()
         stormy_dir.mkdir()
         calm = run_sweep(calm_dir, sweep, None)
-        period = max(MIN_KILL_PERIOD, min(KILL_EVERY_SECONDS, calm[2] / 3))
-        stormy = run_sweep(stormy_dir, sweep, period, roles)
+        period = max(MIN_KILL_PERIOD, min(KILL_EVERY_SECONDS, calm[2] / 6))
+        # Every kill that lands spends one of the trial's lost processes: stop short of the budget, which is
+        # what a storm beyond it should exhaust.
+        limit = load_sweep(sweep).sweep.max_lost_processes - 2
+        stormy = run_sweep(stormy_dir, sweep, period, roles, limit)
     finally:
         ray.shutdown()
     (_, _, calm_seconds, _, _), (_, _, seconds, killer, _) = calm, stormy
