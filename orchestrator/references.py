@@ -34,6 +34,10 @@ class Reference(BaseModel):
     """The method it is about."""
     match: dict[str, Any] = {}
     """Run params that must be equal (dotted as in MLflow, e.g. planner.budget); null matches an unset value."""
+    published_with: dict[str, Any] = {}
+    """Run params the published figure was obtained with that a run may change and still be shown beside it
+    (APEX's rollouts per iteration, episode length): a run that differs in any is not tested against it, and
+    the report says which differ."""
     metric: str | tuple[str, ...]
     """The metric, as sweeps name it (episode_return, success, seconds_per_step, ...), or a list of the metrics
     that each stand for this figure (APEX's policy_return and evaluation_return)."""
@@ -53,6 +57,14 @@ class Reference(BaseModel):
         if (self.task, self.method) != (task, method) or metric not in metrics:
             return False
         return all(same_param(params.get(key), value) for key, value in self.match.items())
+
+    def differences(self, params: Mapping[str, str]) -> list[str]:
+        """``key=value (published other)`` for each ``published_with`` param the run did not share."""
+        return [
+            f"{key}={params.get(key)} (published {value})"
+            for key, value in self.published_with.items()
+            if not same_param(params.get(key), value)
+        ]
 
 
 def same_param(param: str | None, value: Any) -> bool:

@@ -237,6 +237,9 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
         if reference is not None and len(values):
             comparison = statistics.compare_mean(values, reference.value, reference.spread, reference.spread_kind,
                                                  reference.runs)  # fmt: skip
+    differences = reference.differences(members[0].params) if reference is not None else []
+    if differences:  # a reduced run: the published figure stands beside it, untested (e.g. Table 9 at n = 2)
+        comparison = statistics.Comparison("untested", "not tested: ran " + ", ".join(differences), math.nan, None)
     # The IQM trims the best and worst quarter of runs; of one success flag per run it would trim outcomes, not
     # outliers, and say nothing the rate does not.
     flags = successes is not None and bool(np.isin(values, (0.0, 1.0)).all())

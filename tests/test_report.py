@@ -164,6 +164,36 @@ def test_an_untested_comparison_is_not_written_as_consistent():
     assert row["verdict"] == "untested"
 
 
+def test_a_reduced_apex_run_stands_beside_table_9_untested_with_what_it_changed():
+    """The Door acceptance sweep runs n = 2 rollouts per iteration where Table 10 has 10: Table 9's 0.99 is shown
+    beside it, not tested, and the report names the difference; the full HalfCheetah setting is tested."""
+    from orchestrator.tracking import TrialRun
+
+    references = load_references(THESIS)
+    root = Path(__file__).resolve().parents[1] / "sweeps" / "acceptance"
+
+    def summary_of(sweep: str, metric: str, values: list[float]):
+        trial = load_sweep(root / sweep).trials[0]
+        params = {key: str(value) for key, value in trial.config.flat().items()}
+        params |= {"method": "apex", "task": trial.config.task}
+        runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", params | {"seed": str(s)}, {}, {f"final_{metric}": v})
+                for s, v in enumerate(values)]  # fmt: skip
+        return report.summarize(runs, metric, references=references)
+
+    door = summary_of("apex_door_sparse.yaml", "policy_success", [0.0, 0.0])
+    (group,) = door.groups
+    assert group.reference is not None and group.reference.value == 0.99
+    assert group.comparison.verdict == "untested"
+    assert "rollouts=2 (published 10)" in group.comparison.test and "window" not in group.comparison.test
+    assert "rollouts=2 (published 10)" in report.format_table(door)
+    (row,) = csv.DictReader(io.StringIO(report.to_csv(door)))
+    assert row["verdict"] == "untested" and row["published"] == "0.99"
+
+    halfcheetah = summary_of("apex_halfcheetah.yaml", "evaluation_return", [3000.0, 3500.0, 3200.0])
+    tested = halfcheetah.groups[0].comparison
+    assert tested.verdict == "below" and tested.test == "one-sample t-test"
+
+
 def test_pairs_that_all_differ_by_the_same_amount_get_the_sign_test():
     """The t statistic of constant differences is undefined; five of five pairs higher is p = 2 / 32."""
     shifted = statistics.compare_paired(np.array([3.0, 5.0, 2.0, 7.0, 4.0]), np.array([2.0, 4.0, 1.0, 6.0, 3.0]))
