@@ -163,6 +163,18 @@ def test_a_budget_is_spent_whatever_part_of_the_schedule_is_given(given, toleran
     assert abs(spent - 100) <= tolerance, (config.population_sizes(), config.reused_elites())
 
 
+def test_a_schedule_given_in_full_records_what_it_spends_as_its_budget():
+    """Without a budget, iterations and population fix the spend; the budget field must not keep its default
+    100, or the run is labelled, and compared with Table 3, as budget 100. A resolved config keeps it as is."""
+    config = PlannerConfig(iterations=2, population=30).resolved(task_beta=0.25)
+    assert config.budget == config.trajectories_per_step() == 30 + 24 + 3
+    assert PlannerConfig.model_validate(config.model_dump()).resolved(task_beta=0.25) == config
+    assert PlannerConfig(budget=100, iterations=3).resolved(task_beta=0.25).budget == 100
+    # Table 4's budget 45 spends 48 (25 + 20 + 3 shifted elites); resolving it again keeps its label.
+    table = PlannerConfig(budget=45).resolved(task_beta=0.25)
+    assert PlannerConfig.model_validate(table.model_dump()).resolved(task_beta=0.25).budget == 45
+
+
 # ------------------------------------------------------------- validation
 @pytest.mark.parametrize(
     "kwargs, field",

@@ -112,7 +112,8 @@ class PlannerConfig(BaseModel):
     """Action bounds: clip (iCEM), truncate at the bounds (CEM_MPC), or at 2 sigma with sigma capped (CEM_PETS)."""
     budget: int | None = Field(100, ge=1)
     """Trajectories evaluated per environment step; sets iterations and population by Table 4 (given one of them,
-    the other is chosen to spend the budget). Must be >= 2 * elites."""
+    the other is chosen to spend the budget). Must be >= 2 * elites. Not given with both iterations and
+    population: it then records the trajectories they spend per step."""
     iterations: int | None = Field(None, ge=1)
     """CEM-iterations per environment step. Default: from the budget (Table 4); given with a budget, the population
     is chosen to spend it."""
@@ -213,7 +214,12 @@ class PlannerConfig(BaseModel):
             table_iterations, table_population = budget_schedule(self.algorithm, self.budget or 0, self)
             iterations = iterations or table_iterations
             population = population or table_population
-        return self.model_copy(update=dict(noise_beta=beta, iterations=iterations, population=population))
+        resolved = self.model_copy(update=dict(noise_beta=beta, iterations=iterations, population=population))
+        if self.iterations is not None and self.population is not None and "budget" not in self.model_fields_set:
+            # A schedule given in full spends what it spends: the budget records that, not the field's default
+            # (which would label the run, and match it with the published figures, as budget 100).
+            resolved = resolved.model_copy(update={"budget": resolved.trajectories_per_step()})
+        return resolved
 
     def population_sizes(self) -> list[int]:
         """N_i for every CEM-iteration (section 3.2.3); needs a resolved config."""
