@@ -220,6 +220,27 @@ class TrialGroup:
         )
         return self.runner
 
+    def stateless_restarts(self) -> dict[str, int]:
+        """How often Ray has restarted the workers of each stateless role so far, by role.
+
+        Their calls are retried on the restarted process and the round goes on, so no call fails and the
+        runner never hears of the loss: the driver reads it here, from the cluster's actor table (the GCS,
+        which needs no dashboard), to record it. An actor whose entry cannot be read counts 0.
+        """
+        from ray._private import state
+
+        counts: dict[str, int] = {}
+        for role in self.roles:
+            if role.stateful:
+                continue
+            counts[role.name] = 0
+            for actor in self.workers.get(role.name, []):
+                try:
+                    counts[role.name] += int(state.actors(actor_id=actor._actor_id.hex()).get("NumRestarts", 0))
+                except Exception:  # noqa: BLE001 - a table read racing the cluster's end: nothing to add
+                    pass
+        return counts
+
     def actors(self) -> list[Any]:
         """Every actor of the group (runner first)."""
         return ([self.runner] if self.runner is not None else []) + [

@@ -204,6 +204,8 @@ class Attempt:
     rss_mb: float | None = None
     logged_a_round: bool = False
     """Whether this attempt has logged a round (the first it logs may be one a crash left logged in part)."""
+    restarts_seen: dict[str, int] = field(default_factory=dict)
+    """Restarts of each stateless role's workers already recorded (see :meth:`SweepScheduler._record_restarts`)."""
 
 
 class SweepState(NamedTuple):
@@ -656,6 +658,7 @@ class SweepScheduler:
 
         round_report, data, recovered = value
         self._record_recoveries(state, recovered)
+        self._record_restarts(attempt)
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
             self.tracker.record_machine(state.run_id, machine)
@@ -701,6 +704,16 @@ class SweepScheduler:
             state.recovered += 1
             self.tracker.record_recovery(state.run_id, state.recovered, LOST_PROCESS, cause)
 
+    def _record_restarts(self, attempt: Attempt) -> None:
+        """Stateless workers that Ray restarted since the last look: their calls were retried and the trial went
+        on untouched, but each was a lost process, so it is recorded as a recovery and spends the budget."""
+        for role, count in attempt.group.stateless_restarts().items():
+            lost = count - attempt.restarts_seen.get(role, 0)
+            if lost > 0:
+                cause = f"a worker of role {role!r} was lost; Ray restarted it and retried its call (stateless)"
+                self._record_recoveries(attempt.state, [cause] * lost)
+                attempt.restarts_seen[role] = count
+
     def _cost(self, state: TrialState, attempt: Attempt) -> dict[str, float]:
         """Core-seconds per unit of the method's work, from the rounds' seconds: what later plans estimate from."""
         seconds = sum(value for _, value in self.tracker.metric_history(state.run_id, ROUND_SECONDS))
@@ -710,6 +723,7 @@ class SweepScheduler:
     def _failed(self, attempt: Attempt, failure: Failure) -> str:
         """Record a failed attempt and decide: "retry" (queued again) or "failed" (the trial is FAILED)."""
         state = attempt.state
+        self._record_restarts(attempt)  # those Ray made before the failure
         self._end_attempt(attempt)
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
         detail = "the same error as an earlier attempt (see its file)" if repeat else failure.detail

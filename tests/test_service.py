@@ -289,6 +289,11 @@ def test_killed_simulation_worker_is_restarted_and_the_episode_completes(tmp_pat
     _, (child,) = sweep_runs(tracker.uri, "worker_kill")
     assert child.status == FINISHED and child.attempts == 1  # absorbed by the restart, no trial restart
     assert child.metrics["simulation_worker_restarts"] >= 1  # the failure is visible in MLflow
+    # ... and, read by the driver from Ray's actor table, as a recovery of the trial, as any method's would be.
+    recoveries = tracker.list_files(child.run_id, "failures")
+    assert recoveries and all(f.rsplit("/", 1)[-1].startswith("recovery_") for f in recoveries)
+    text = tracker.download(child.run_id, recoveries[0], tmp_path / "recovery").read_text()
+    assert "a worker of role 'simulation' was lost; Ray restarted it" in text
     # Costs are a pure function of state and actions, so the retried call changes nothing.
     (undisturbed,) = run_locally(METHODS["mpc"], loaded.trials[0].config.spec())
     assert child.metrics["episode_return"] == undisturbed.metrics["episode_return"]
@@ -379,6 +384,13 @@ class RunnerlessGroup:
             return "ref"
 
     runner = type("Runner", (), {"run_round": _Call()})()
+
+    def __init__(self, restarts: dict[str, int] | None = None):
+        self.restarts = restarts or {}
+        """What the group says Ray has restarted of its stateless roles so far."""
+
+    def stateless_restarts(self) -> dict[str, int]:
+        return dict(self.restarts)
 
     def teardown(self):
         pass
@@ -663,6 +675,40 @@ def test_recoveries_made_before_a_round_failed_are_recorded_and_spend_the_budget
     assert history(tracker, state.run_id, "failures/lost_process") == [(1, 1.0)]
     again = Failure(LOST_PROCESS, "trainer lost", "detail", "sig")
     assert scheduler._failed(Attempt(state, RunnerlessGroup(), phase="running"), again) == "failed"
+
+
+def test_stateless_workers_ray_restarted_are_recorded_once_and_spend_the_budget(tmp_path):
+    """A stateless worker's loss fails no call (Ray restarts it and retries), so neither the runner nor a round
+    hears of it: the driver reads the restarts from the group after each round, and once more when an attempt
+    fails, and records each new one once, as a recovery that spends the lost-process budget."""
+    from orchestrator.failures import LOST_PROCESS, Failure
+    from orchestrator.scheduler import Attempt, TrialState
+    from workers.methods import RoundReport
+
+    sweep = toy_sweep(tmp_path, "restarted")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep("restarted", "r", "hash", sweep.read_text(), {}, "dev")
+    state = TrialState(load_sweep(sweep).trials[0], 4, attempts=1, lost_left=5)
+    state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    group = RunnerlessGroup({"relabel": 0, "planner": 0})
+    attempt = Attempt(state, group, phase="running", round_index=0)
+    group.restarts["relabel"] = 2
+    scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", []))
+    scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", []))  # nothing new
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0)]
+    assert state.lost_left == 3 and state.recovered == 2
+    group.restarts["planner"] = 1  # lost after the last round ended, before the attempt failed
+    failure = Failure(LOST_PROCESS, "runner lost", "detail", "sig")
+    assert scheduler._failed(attempt, failure) == "retry"
+    files = tracker.list_files(state.run_id, "failures")
+    assert sorted(f.rsplit("/", 1)[-1] for f in files) == [
+        "attempt_001_lost_process.txt", "recovery_001_lost_process.txt", "recovery_002_lost_process.txt",
+        "recovery_003_lost_process.txt",
+    ]  # fmt: skip
+    third = tracker.download(state.run_id, "failures/recovery_003_lost_process.txt", tmp_path / "r3").read_text()
+    assert "role 'planner' was lost; Ray restarted it" in third
+    assert state.lost_left == 1  # three restarts and the runner's loss
 
 
 def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
