@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal, NamedTuple
 import numpy as np
 import yaml
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -150,6 +151,13 @@ class Tracking(_UserModel):
     """Extra tags on the sweep's parent run."""
 
 
+def _named_variant(variant: dict[str, Any]) -> dict[str, Any]:
+    name = variant.get("name")
+    if not isinstance(name, str) or not name:
+        raise ValueError("a variant needs a 'name', e.g. - {name: no-colored-noise, planner.noise_beta: 0}")
+    return variant
+
+
 class Sweep(_UserModel):
     """A sweep file: what to run, over which parameters and seeds, and how."""
 
@@ -165,7 +173,7 @@ class Sweep(_UserModel):
     """The method's settings shared by all trials (for mpc: planner, episodes, max_steps, task_options, ...)."""
     parameters: dict[str, GridParameter | RandomParameter] = {}
     """Parameters to vary, by dotted path into the method's settings (e.g. planner.budget) or task / algorithm."""
-    variants: list[dict[str, Any]] = []
+    variants: list[Annotated[dict[str, Any], AfterValidator(_named_variant)]] = []
     """Named sets of overrides run side by side, e.g. ablations (thesis Fig. 7):
     [{name: full}, {name: no-colored-noise, planner.noise_beta: 0}]. Combined with every grid point and seed."""
     num_samples: int = Field(1, ge=1)
@@ -186,8 +194,9 @@ class Sweep(_UserModel):
     """How often a trial whose code raised is tried again (from its last checkpoint) before it is FAILED;
     an error that repeats identically is not retried again."""
     max_lost_processes: int = Field(20, ge=0)
-    """How many lost processes (killed actors or nodes, memory kills, preemption) a trial recovers from, each
-    time from its last checkpoint, before it is FAILED."""
+    """How many lost processes (killed actors or nodes, memory kills, preemption) a trial recovers from before it
+    is FAILED: a stateless worker by Ray's restart and retried call, a stateful one from the last completed round,
+    the trial's runner from its last checkpoint."""
     max_trials: int = Field(DEFAULT_MAX_TRIALS, ge=1)
     """Refuse sweeps that expand to more trials than this (guards against runaway grids)."""
     tracking: Tracking = Tracking()
@@ -217,9 +226,7 @@ class Sweep(_UserModel):
     @field_validator("variants")
     @classmethod
     def _variants_are_named_and_distinct(cls, variants: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        names = [variant.get("name") for variant in variants]
-        if any(not isinstance(name, str) or not name for name in names):
-            raise ValueError("every variant needs a 'name'")
+        names = [variant["name"] for variant in variants]
         if len(set(names)) != len(names):
             raise ValueError(f"variant names must differ, got {names}")
         return variants
@@ -664,6 +671,15 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
     problem = program.task_problem(TASKS[task])
     if problem:
         problems.append(SweepProblem(file, blame("task"), "task", problem))
+        return None
+
+    planner = config["settings"].get("planner")
+    if isinstance(planner, dict) and all(planner.get(key) is not None for key in ("budget", "iterations", "population")):
+        message = (
+            f"budget {planner['budget']} would be ignored: iterations and population are both given and fix what "
+            "is spent; drop the budget, or one of iterations and population to have the other chosen to spend it"
+        )
+        problems.append(SweepProblem(file, blame("planner.budget"), "planner.budget", message))
         return None
 
     def report(error: ValidationError, prefix: str, task_options: bool = False) -> None:

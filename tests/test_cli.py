@@ -110,9 +110,9 @@ BAD_SWEEPS = {
         "below 2K",
     ),
     "variant_without_name": (
-        "name: x\ntask: point_reach\nvariants:\n  - planner.budget: 50\n",
-        (3, "variants"),
-        "needs a 'name'",
+        "name: x\ntask: point_reach\nvariants:\n  - name: a\n  - planner.budget: 50\n",
+        (5, "variants.1"),
+        "a variant needs a 'name'",
     ),
     "baseline_not_a_variant": (
         "name: x\ntask: point_reach\nbaseline: ful\nvariants:\n  - name: full\n  - name: no-elites\n",
@@ -136,6 +136,12 @@ BAD_SWEEPS = {
         "  planner:\n    values: [{horizon: 10}, {budget: 50}]\n",
         (6, "parameters.planner"),
         "parameter 'planner' replaces the whole of base's planner, dropping planner.horizon",
+    ),
+    "budget_beside_a_full_schedule": (
+        "name: x\ntask: point_reach\nbase:\n  planner: {budget: 200}\nvariants:\n"
+        "  - {name: a, planner.iterations: 3, planner.population: 50}\n",
+        (4, "planner.budget"),
+        "budget 200 would be ignored: iterations and population are both given",
     ),
     "task_of_another_method": (
         "name: x\ntask: halfcheetah_running\nmethod: mbrl\nbase:\n  iterations: 2\n",
@@ -186,7 +192,7 @@ def test_a_union_value_is_judged_as_the_member_it_was_written_as(tmp_path):
 
 def test_malformed_variants_do_not_make_a_baseline_unknown(tmp_path):
     text = "name: x\ntask: point_reach\nbaseline: full\nvariants:\n  - name: full\n  - planner.budget: 50\n"
-    assert [message for _, _, message in problems_of(tmp_path, text)] == ["every variant needs a 'name'"]
+    assert [message for _, _, message in problems_of(tmp_path, text)] == ["a variant needs a 'name', e.g. - {name: no-colored-noise, planner.noise_beta: 0}"]
 
 
 def test_binary_file_is_rejected(tmp_path):
