@@ -143,6 +143,12 @@ BAD_SWEEPS = {
         (4, "planner.budget"),
         "budget 200 would be ignored: iterations and population are both given",
     ),
+    "elite_reuse_that_reuses_none": (
+        "name: x\ntask: point_reach\nalgorithm: cem_mpc\nvariants:\n  - name: a\n"
+        "  - {name: keep, planner.keep_elites: true}\n",
+        (6, "planner.keep_elites"),
+        "= 0 elites, so it would change nothing",
+    ),
     "task_of_another_method": (
         "name: x\ntask: halfcheetah_running\nmethod: mbrl\nbase:\n  iterations: 2\n",
         (2, "task"),

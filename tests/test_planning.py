@@ -201,6 +201,18 @@ def test_colored_noise_needs_clipping():
     PlannerConfig(algorithm="cem_mpc", noise_beta=2.0, bounds="clip")  # the Fig. 7 "+colored noise" addition
 
 
+@pytest.mark.parametrize("switch", ["keep_elites", "shift_elites"])
+def test_elite_reuse_switched_on_that_would_reuse_none_is_refused(switch):
+    """CEM_MPC has zeta = 0: keep- or shift-elites added to it without an elite_fraction reuse floor(0 x K) = 0
+    elites and change nothing (the Fig. 7 additions set zeta 0.3); said, not run as if it were the ablation."""
+    with pytest.raises(ValidationError, match=f"{switch} reuses floor"):
+        PlannerConfig(algorithm="cem_mpc", **{switch: True})
+    with pytest.raises(ValidationError, match="= 0 elites"):
+        PlannerConfig(algorithm="cem_mpc", elites=3, elite_fraction=0.3, **{switch: True})
+    assert PlannerConfig(algorithm="cem_mpc", elite_fraction=0.3, **{switch: True}).reused_elites() == 3
+    PlannerConfig(algorithm="icem", elites=3)  # iCEM's own switches with a small K: as configured, not refused
+
+
 # --------------------------------------------------------------- planning
 TARGET = np.linspace(-0.8, 0.8, 10)[:, None] * np.array([1.0, -0.5])
 

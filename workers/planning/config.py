@@ -138,7 +138,8 @@ class PlannerConfig(BaseModel):
     elite_fraction: float | None = Field(None, ge=0, le=1)
     """Fraction zeta of the elite-set reused by keep-elites and shift-elites (section 3.2.2)."""
     keep_elites: bool | None = None
-    """Add the best zeta K elites of an iteration to the next iteration's samples (section 3.2.2)."""
+    """Add the best zeta K elites of an iteration to the next iteration's samples (section 3.2.2). Switched on for
+    an algorithm that has it off (CEM_MPC), it needs an elite_fraction that reuses at least one elite."""
     shift_elites: bool | None = None
     """Reuse the best zeta K final elites at the next step: shifted by one step, a random action appended."""
     shift_mean: bool | None = None
@@ -193,6 +194,21 @@ class PlannerConfig(BaseModel):
         if beta not in (None, 0.0) and info.data.get("bounds") not in (None, "clip"):
             raise ValueError("colored noise (noise_beta > 0) needs bounds: clip; truncated normals are white")
         return beta
+
+    @field_validator("keep_elites", "shift_elites")
+    @classmethod
+    def _switched_on_reuse_reuses_some(cls, on: bool | None, info: ValidationInfo) -> bool | None:
+        # On where the preset has it off is the user's doing (CEM_MPC + keep-elites, Fig. 7); with CEM_MPC's
+        # zeta = 0 it would reuse floor(zeta K) = 0 elites and change nothing.
+        preset = PRESETS.get(info.data.get("algorithm", ""), {})
+        if on and preset.get(info.field_name) is False:
+            fraction, elites = info.data.get("elite_fraction") or 0.0, info.data.get("elites")
+            if elites is not None and int(elites * fraction) == 0:
+                raise ValueError(
+                    f"{info.field_name} reuses floor(elite_fraction x elites) = floor({fraction} x {elites}) = 0 "
+                    "elites, so it would change nothing; set elite_fraction with it (iCEM's is 0.3)"
+                )
+        return on
 
     @model_validator(mode="after")
     def _schedule_is_defined(self) -> PlannerConfig:
