@@ -61,6 +61,12 @@ def test_augmented_goal_needs_box_and_gripper():
     assert not task.is_success(np.array([1.3, 0.9, 0.5, 1.3, 0.7, 0.5]), goal)  # box elsewhere
     plain = make_goal_task("fetch_pick_place", {"augment_goal": False})
     assert plain.goal_dim == 3 and plain.is_success(np.array([1.3, 0.7, 0.5]), goal[:3])
+    # Box and gripper each 0.04 away: within 0.05 part by part, 0.057 as one 6-D vector.
+    both_near = np.array([1.34, 0.7, 0.5, 1.3, 0.74, 0.5])
+    assert task.is_success(both_near, goal) and task.goal_distance(both_near, goal) == pytest.approx(0.04)
+    joint = make_goal_task("fetch_pick_place", {"success_distance": "joint"})
+    assert not joint.is_success(both_near, goal) and joint.goal_distance(both_near, goal) == pytest.approx(0.0566, 1e-3)
+    assert joint.is_success(np.array([1.3, 0.7, 0.5, 1.3, 0.7, 0.53]), goal)
 
 
 def test_reach_wall_starts_on_one_half_and_blocks_the_straight_way(envs):
