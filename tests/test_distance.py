@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 
 import numpy as np
@@ -370,8 +371,25 @@ def test_triangular_phase_only_trains_masked_samples():
     before = {k: v.copy() for k, v in trainer.reward_weights().arrays.items() if k.startswith("net/")}
     metrics = trainer.train()
     assert metrics["distance/triangular_masked_fraction"] == 0.0
+    # Nothing trained: no loss to report (not a perfect fit of 0), and every update was idle.
+    assert math.isnan(metrics["distance/triangular_loss"]) and metrics["distance/triangular_idle_fraction"] == 1.0
     after = trainer.reward_weights().arrays
     assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+def test_the_triangular_loss_is_that_of_the_samples_that_trained():
+    """Updates no sample passed are left out of the loss, not averaged in as zeros; the rest weigh by how many of
+    their samples trained."""
+    trainer = DistanceTrainer(DistanceSettings(hidden=(16,), batch_size=32, temporal_updates_per_episode=0,
+                                               triangular_updates_per_episode=4),
+                              CountSettings(single_key_dim=8, pair_key_dim=8, sigma=0.01), 4, 2, 2, 8)  # fmt: skip
+    trainer.add_episodes(marked_episodes(1, 8))
+    steps = iter([{"loss": 2.0, "masked_fraction": 0.5}, {"loss": 0.0, "masked_fraction": 0.0},
+                  {"loss": 5.0, "masked_fraction": 0.25}, {"loss": 0.0, "masked_fraction": 0.0}])  # fmt: skip
+    trainer.triangular_step = lambda: next(steps)
+    metrics = trainer.train()
+    assert metrics["distance/triangular_loss"] == pytest.approx((2.0 * 0.5 + 5.0 * 0.25) / 0.75)
+    assert metrics["distance/triangular_idle_fraction"] == 0.5
 
 
 # ---------------------------------------------------------------------- HER

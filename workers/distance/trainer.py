@@ -14,6 +14,8 @@ come from D_last.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from workers.distance.buffer import EpisodeBuffer, Episodes
@@ -98,6 +100,13 @@ class DistanceTrainer:
             if triangular:
                 for key in triangular[0]:
                     metrics[f"distance/triangular_{key}"] = float(np.mean([m[key] for m in triangular]))
+                # An update no sample passed (Alg. 4 line 20) trains nothing and has no loss: the loss is that of the
+                # samples that trained (nan when none did), and the share of such idle updates is logged beside it.
+                trained = np.array([m["masked_fraction"] for m in triangular])
+                losses = np.array([m["loss"] for m in triangular])
+                loss = float(losses @ trained / trained.sum()) if trained.sum() > 0 else math.nan
+                metrics["distance/triangular_loss"] = loss
+                metrics["distance/triangular_idle_fraction"] = float(np.mean(trained == 0))
         if self.counts is not None:
             metrics["counts/single_increments"] = float(self.counts.single.sketch.total)
             metrics["counts/pair_increments"] = float(self.counts.pair.sketch.total)
