@@ -244,6 +244,8 @@ def _load(path: Path):
         for problem in error.problems:
             print(problem, file=sys.stderr)
         print(f"icemlab: {len(error.problems)} problem(s) in {path}; nothing was started", file=sys.stderr)
+        if error.unchecked:
+            print(f"icemlab: not checked yet: {error.unchecked}; fix these and validate again", file=sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT) from None
 
 

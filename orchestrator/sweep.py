@@ -441,6 +441,10 @@ def parameter_path_problem(path: str, method: str) -> str | None:
 
 
 # --------------------------------------------------------------- loading
+UNCHECKED_TRIALS = "each trial's settings (the base with its variant, grid values and seed, resolved for its task)"
+"""What is not checked while the sweep's own keys or the method's settings have problems."""
+
+
 def load_sweep(path: str | Path) -> LoadedSweep:
     """Read, validate and expand a sweep file; raise :class:`SweepError` on any problem."""
     path = Path(path)
@@ -455,10 +459,10 @@ def load_sweep(path: str | Path) -> LoadedSweep:
     except ValidationError as error:
         problems = problems_from(error, file, root, Sweep, data=data)
         problems += _method_problems(data, file, root) if "base" not in {p.path.split(".")[0] for p in problems} else []
-        raise SweepError(sorted_problems(problems)) from None
+        raise SweepError(sorted_problems(problems), unchecked=UNCHECKED_TRIALS) from None
     problems = _method_problems(data, file, root)
     if problems:
-        raise SweepError(sorted_problems(problems))
+        raise SweepError(sorted_problems(problems), unchecked=UNCHECKED_TRIALS)
     references = _references(sweep, path, root)
     trials = expand(sweep, file, root)
     file_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -609,7 +613,7 @@ def expand(sweep: Sweep, file: str = "<sweep>", root: yaml.Node | None = None) -
             f"the sweep expands to {count:,} trials, above max_trials = {sweep.max_trials}; "
             "shrink the grid or the seeds, or raise max_trials"
         )
-        raise SweepError([SweepProblem(file, line, where[0], message)])
+        raise SweepError([SweepProblem(file, line, where[0], message)], unchecked=UNCHECKED_TRIALS)
 
     base = copy.deepcopy(sweep.base)
     if sweep.method == "mpc":

@@ -35,10 +35,15 @@ class SweepProblem(NamedTuple):
 
 
 class SweepError(Exception):
-    """A sweep file that cannot run; ``problems`` lists every located problem."""
+    """A sweep file that cannot run; ``problems`` lists every located problem found.
 
-    def __init__(self, problems: list[SweepProblem]):
+    ``unchecked`` names the checks that could not run because of them (each check needs the parts before it
+    valid: the file's keys, then the method's settings, then every trial), or is None when all ran.
+    """
+
+    def __init__(self, problems: list[SweepProblem], unchecked: str | None = None):
         self.problems = problems
+        self.unchecked = unchecked
         super().__init__("\n".join(str(p) for p in problems))
 
 

@@ -216,6 +216,21 @@ def test_every_problem_is_reported_at_once(tmp_path):
     assert [p.line for p in error.value.problems] == [5, 6, 7]
 
 
+@pytest.mark.parametrize(
+    "case, unchecked",
+    [("unknown_key", True), ("variant_without_name", True), ("too_many_trials", True), ("variant_bad_budget", False),
+     ("budget_beside_a_full_schedule", False)],
+)
+def test_problems_found_before_the_trials_are_checked_say_that_those_checks_did_not_run(tmp_path, case, unchecked):
+    """A sweep's own keys and the method's settings are checked before its trials, which need them valid: a
+    problem found early says the trials are still to check, so one fix is not taken for the last."""
+    sweep = tmp_path / "bad.yaml"
+    sweep.write_text(BAD_SWEEPS[case][0])
+    with pytest.raises(SweepError) as error:
+        load_sweep(sweep)
+    assert (error.value.unchecked is not None) == unchecked
+
+
 def test_run_with_a_bad_sweep_exits_2_and_starts_nothing(tmp_path):
     sweep = tmp_path / "bad.yaml"
     sweep.write_text(BAD_SWEEPS["unknown_key"][0])
@@ -225,6 +240,7 @@ def test_run_with_a_bad_sweep_exits_2_and_starts_nothing(tmp_path):
     problems = [line for line in result.stderr.splitlines() if PROBLEM_LINE.match(line)]
     assert problems == [f"{sweep}:5: base.planner.budgte: unknown key (did you mean 'budget'?)"]
     assert "nothing was started" in result.stderr
+    assert "not checked yet: each trial's settings" in result.stderr  # the later checks need these fixed
     assert not (tmp_path / "mlflow.db").exists()  # no MLflow store, so no run
     after = set(Path("/tmp/ray").glob("session_*")) if Path("/tmp/ray").exists() else set()
     assert after == ray_sessions  # no Ray session
