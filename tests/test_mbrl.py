@@ -21,6 +21,7 @@ from workers.dynamics.ensemble import DynamicsEnsemble
 from workers.methods import METHODS, TrialSpec
 from workers.methods.base import LocalRoleGroup
 from workers.methods.mbrl import TABLE_15, MbrlProgram, MbrlSettings, episode_ending, frozen_rows
+from workers.planning.config import PlannerConfig
 from workers.tasks import make_task
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,6 +75,22 @@ def run_rounds(program: MbrlProgram, rounds) -> list:
 
 
 # ------------------------------------------------------------------ settings
+def test_a_planner_budget_or_algorithm_of_the_sweep_is_not_overridden_by_table_15():
+    """Table 15 fixes iCEM's iterations, population and switches; a sweep's budget must choose the schedule
+    instead (not be overwritten by 393), and another algorithm must run with its own preset, not Table 15's."""
+    bridge = make_task("bridge_maze")
+    budget = MbrlProgram.resolve(MbrlSettings(planner={"budget": 60}), bridge).planner
+    assert budget.budget == 60 and (budget.iterations, budget.population) != (3, 128)
+    spent = PlannerConfig(**budget.model_dump()).trajectories_per_step()
+    assert abs(spent - 60) <= 5  # a schedule close to the budget, plus the re-evaluated elites
+    pets = MbrlProgram.resolve(MbrlSettings(planner={"algorithm": "cem_pets"}), bridge).planner
+    assert (pets.bounds, pets.keep_elites, pets.shift_elites, pets.best_action, pets.add_mean, pets.noise_beta) == (
+        "truncate_2sigma", False, False, False, False, 0.0)
+    assert (pets.iterations, pets.population, pets.horizon) == (3, 128, 30)  # what is not a switch stays Table 15's
+    iterations = MbrlProgram.resolve(MbrlSettings(planner={"iterations": 2}), bridge).planner
+    assert (iterations.iterations, iterations.population) == (2, 128) and iterations.budget == 2 * 128 + 3 + 3
+
+
 def test_resolution_fills_the_thesis_tables_per_task():
     bridge = MbrlProgram.resolve(MbrlSettings(), make_task("bridge_maze"))
     assert bridge.model.preset == "bridge_maze" and (bridge.model.hidden_layers, bridge.model.hidden_size) == (6, 400)

@@ -70,7 +70,7 @@ from workers.methods.base import (
     TrialSpec,
     located_error,
 )
-from workers.planning.config import PlannerConfig
+from workers.planning.config import PRESETS, PlannerConfig
 
 if TYPE_CHECKING:
     from workers.dynamics.uncertainty_map import UncertaintyMap
@@ -136,6 +136,21 @@ TABLE_15: dict[str, Any] = dict(
     reevaluate_elites=True,
 )
 
+def planner_defaults(task: Any, given: dict[str, Any]) -> dict[str, Any]:
+    """Table 15 with the task's differences (Table 16), less what the sweep's own planner fields decide.
+
+    A budget chooses the schedule (Table 4, or the missing one of iterations and population), so it drops
+    the table's iterations and population; another algorithm than iCEM brings its own preset switches
+    (section 3.1.1), so it drops Table 15's, which are iCEM's.
+    """
+    defaults = TABLE_15 | task.planner_defaults
+    if given.get("budget") is not None:
+        defaults = {k: v for k, v in defaults.items() if k not in ("budget", "iterations", "population")}
+    if given.get("algorithm", "icem") != "icem":
+        defaults = {k: v for k, v in defaults.items() if k not in PRESETS["icem"]}
+    return defaults
+
+
 _PlannerBase = type("_PlannerBase", (_Settings,), {"__doc__": "iCEM on the learned model."})
 MbrlPlannerSettings = create_model(
     "MbrlPlannerSettings",
@@ -144,7 +159,9 @@ MbrlPlannerSettings = create_model(
         "iCEM on the learned model; unset fields take Table 15 (BridgeMaze) with the task's differences "
         "(Table 16 for Noisy-HalfCheetah: 120 trajectories, 4 iterations, beta 0.25). best_action: true executes "
         "the best elite's first action (Table 15), false the mean's (section 5.3.1); reevaluate_elites "
-        "defaults to true (a stochastic evaluator)."
+        "defaults to true (a stochastic evaluator). A budget replaces the table's iterations and population "
+        "(Table 4 schedules it); without one, budget records the trajectories spent per step. Another algorithm "
+        "takes its own preset switches instead of Table 15's iCEM ones."
     ),
     **_optional_fields(PlannerConfig),
 )
@@ -491,11 +508,11 @@ class MbrlProgram(Program):
         # The planner: Table 15, the task's differences (Table 16), then what the sweep set.
         given = {k: v for k, v in settings.planner.model_dump().items() if v is not None}
         try:
-            planner = PlannerConfig(**(TABLE_15 | task.planner_defaults | given)).resolved(task.colored_noise_beta)
+            planner = PlannerConfig(**(planner_defaults(task, given) | given)).resolved(task.colored_noise_beta)
         except ValidationError as error:
             raise prefixed(error, ("planner",)) from None
-        # The budget field then records the trajectories evaluated per step (Table 4 does not apply).
-        planner = planner.model_copy(update={"budget": planner.trajectories_per_step()})
+        if "budget" not in given:  # the budget field then records the trajectories evaluated per step
+            planner = planner.model_copy(update={"budget": planner.trajectories_per_step()})
         update["planner"] = MbrlPlannerSettings(**planner.model_dump())
         # The cost: boxes and dimensions must exist in the task's state.
         update["razer"] = cls._razer_settings(settings.razer, task)
