@@ -543,6 +543,7 @@ def test_iterations_report_every_phase_and_keep_the_window(window_counts, window
         for phase in ("expert", "relabel"):
             assert 0 <= m[f"lambda/{phase}_zero_fraction"] <= 1 and m[f"lambda/{phase}_max"] >= 0
         assert {"seconds/expert", "seconds/dagger", "seconds/training", "seconds/iteration", "core_minutes"} <= set(m)
+        assert "seconds/evaluation" not in m  # this trial does not evaluate
         assert {a.path for a in report.artifacts} == {f"policy/policy_{index:04d}.npz", "apex_curves.png"}
     # Rollouts of 10 steps, 2 expert and 2 relabeled per iteration; the oldest leave.
     assert [r.metrics["dataset/rollouts"] for r in reports] == rollouts
@@ -554,8 +555,9 @@ def test_iterations_report_every_phase_and_keep_the_window(window_counts, window
 
 
 def test_a_success_summary_carries_the_episodes_behind_it():
-    """Reports test a success figure as a rate of episodes: the last 5 iterations' policy rollouts (2 each), and
-    the evaluations of those iterations that evaluated (3 episodes each)."""
+    """Reports test a success figure as a rate of episodes: the last 5 iterations' policy rollouts (2 each, new
+    seeds every iteration), and the evaluations' 3 episodes, which start alike at every evaluation: averaged over
+    the three that fall in the last 5 iterations they are 3 distinct episodes, not 9."""
     spec = trial(evaluation_episodes=3, evaluate_every=2)
     roles = {s.name: LocalRoleGroup.build(s) for s in ApexProgram.roles_for(spec, 1, {})}
     program = ApexProgram(spec, roles, 1)
@@ -565,8 +567,29 @@ def test_a_success_summary_carries_the_episodes_behind_it():
         "evaluation_success": [nan, 1 / 3, nan, 2 / 3, nan, 1.0, 1.0],
     }
     summary = program._summary()
-    assert summary["final_policy_success_episodes"] == 10 and summary["final_evaluation_success_episodes"] == 9
+    assert summary["final_policy_success_episodes"] == 10 and summary["final_evaluation_success_episodes"] == 3
     assert summary["final_evaluation_success"] == pytest.approx(8 / 9)
+
+
+def test_an_evaluation_is_timed_apart_from_table_12s_phases(monkeypatch):
+    """Table 12's Total is expert + DAgger + training: an evaluation's time and CPU are logged on their own and
+    stay out of seconds/iteration and core_minutes. Evaluation episodes are made to report a minute of CPU each."""
+    from workers.methods.apex import derived_seed
+    from workers.policy.worker import RelabelWorker
+
+    spec = trial(iterations=1, evaluation_episodes=3)
+    evaluation_seeds = {derived_seed(spec.seed, 0, "evaluation", k) for k in range(3)}
+    episode = RelabelWorker.policy_episode
+
+    def minute_long_evaluations(self, seed, steps, weights):
+        result = episode(self, seed, steps, weights)
+        return result._replace(cpu_seconds=60.0) if seed in evaluation_seeds else result
+
+    monkeypatch.setattr(RelabelWorker, "policy_episode", minute_long_evaluations)
+    (report,) = run_locally(ApexProgram, spec)
+    m = report.metrics
+    assert m["core_minutes/evaluation"] == 3.0 and m["core_minutes"] < 1.0
+    assert m["seconds/evaluation"] > 0 and "evaluation_return" in m
 
 
 def test_without_dagger_the_window_holds_w_times_n_expert_rollouts_either_way():

@@ -335,6 +335,8 @@ def test_apex_trials_of_the_earlier_readings_keep_their_keys(tmp_path):
     assert shipped[0].key not in earlier and shipped[-1].key not in earlier
     sweep["base"]["window_counts"] = "episodes"
     sweep["base"]["relabel_restart"] = "chunk"
+    for added_since in ("evaluation_episodes", "evaluate_every"):  # the sweep evaluates its final policies now
+        del sweep["base"][added_since]
     sweep["base"].setdefault("policy", {})["keep_function"] = False
     sweep["base"].setdefault("planner", {})["noise_release"] = "2.1"
     path = tmp_path / "apex_fetch.yaml"

@@ -68,9 +68,11 @@ class ExpertSwitches(BaseModel):
     c: float = Field(0.025, ge=0)
     """c_1 of eq. 17 for the guidance term (Table 10: 0.025)."""
     fixed_lambda: float = Field(1.0, ge=0)
-    """lambda_1 when not adaptive (the thesis tuned it per task and does not give it)."""
+    """lambda_1 when not adaptive. The thesis tuned it per task (App. C.2) and does not give it: 1.0 is ours,
+    untuned, so the fixed-lambda ablation and iCEM_pi-GPS run with a weight the thesis did not use."""
     action_norm: bool = False
-    """Add the action-norm cost lambda_2 sum_t ||a_t|| (eq. 16)."""
+    """Add the action-norm cost lambda_2 sum_t ||a_t|| (eq. 16 writes lambda_2 ||a|| of the sequence; we read it
+    as the sum of the steps' norms, which weighs every step alike; the two rank sequences differently)."""
     c_action_norm: float = Field(0.025, ge=0)
     """c_2 of eq. 17 for the action-norm term."""
     fixed_lambda_action_norm: float = Field(0.01, ge=0)
