@@ -20,6 +20,7 @@ from workers.dynamics.ensemble import (
     DynamicsEnsemble,
     EnsembleConfig,
     Transitions,
+    epoch_orders,
     gaussian_nll,
     soft_bound_logvar,
 )
@@ -473,11 +474,30 @@ def test_settings_validation(kwargs, message):
         RazerSettings(**kwargs)
 
 
+@pytest.mark.parametrize("bootstrap", [False, True])
+def test_each_member_trains_on_its_own_order_and_a_bootstrap_is_drawn_once_per_call(bootstrap):
+    """PETS' bootstrap: one resample with replacement per member for the whole training call, reshuffled every
+    epoch (about 63% distinct rows); without it every member sees all rows, each epoch in its own order."""
+    n, members = 400, 3
+    orders = list(epoch_orders(n, members, 5, bootstrap, torch.Generator().manual_seed(0)))
+    assert len(orders) == 5 and all(order.shape == (members, n) for order in orders)
+    for member in range(members):
+        epochs = [order[member].sort().values for order in orders]
+        assert all(torch.equal(epoch, epochs[0]) for epoch in epochs)  # the same data every epoch
+        distinct = len(set(epochs[0].tolist()))
+        assert (0.55 * n < distinct < 0.72 * n) if bootstrap else distinct == n
+    assert not torch.equal(orders[0][0], orders[1][0]) and not torch.equal(orders[0][0], orders[0][1])
+
+
 def test_safety_box_and_ensemble_config_validation():
     with pytest.raises(ValidationError, match="not below high"):
         SafetyBox(dims=(0,), low=(1.0,), high=(0.5,))
     with pytest.raises(ValidationError, match="one low and one high edge"):
         SafetyBox(dims=(0, 1), low=(1.0,), high=(None,))
+    with pytest.raises(ValidationError, match="listed twice"):  # eq. 34's product is over distinct dimensions
+        SafetyBox(dims=(0, 0), low=(0.3, None), high=(None, 0.5))
+    with pytest.raises(ValidationError, match="neither edge"):
+        SafetyBox(dims=(0, 1), low=(0.3, None), high=(None, None))
     with pytest.raises(ValidationError, match="must be below max_logvar"):
         EnsembleConfig(min_logvar=4.0, max_logvar=-10.0)
     with pytest.raises(ValueError, match="unknown ensemble preset"):

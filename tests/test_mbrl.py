@@ -108,6 +108,20 @@ def test_resolution_fills_the_thesis_tables_per_task():
     assert custom.planner.horizon == 12 and custom.planner.population == 128 and custom.model.epochs == 3
 
 
+def test_the_cost_label_names_every_term_of_razers_cost():
+    """A run with the safety term (eq. 35) is neither PETS nor the plain w_A / w_E configuration."""
+    task = make_task("noisy_halfcheetah")
+
+    def label(**razer) -> str:
+        settings = MbrlProgram.resolve(MbrlSettings(razer=razer), task)
+        return MbrlProgram.labels(TrialSpec("mbrl", task.name, settings, 0))["cost"]
+
+    assert label(mean_propagation="none") == "pets"
+    assert label(mean_propagation="none", safety_weight=1.0) == "razer_wA0_wE0_wS1_delta0.05"
+    assert label(aleatoric_weight=0.05, safety_weight=1.0, safety_delta=0.1) == "razer_wA0.05_wE0_wS1_delta0.1"
+    assert label(aleatoric_weight=0.05) == "razer_wA0.05_wE0"
+
+
 def test_frozen_rows_are_pets_then_razer_by_weight():
     settings = MbrlSettings(
         razer={"epistemic_weight": 0.05, "safety_weight": 0.0}, frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0]}

@@ -182,6 +182,20 @@ class EnsembleMLP(nn.Module):
         return mean, soft_bound_logvar(raw_logvar, self.min_logvar, self.max_logvar)
 
 
+def epoch_orders(n: int, members: int, epochs: int, bootstrap: bool, generator: torch.Generator):
+    """Each epoch's sample indices per member, (members, n).
+
+    Every member sees its data in its own order, so that members differ in more than their initial weights.
+    With ``bootstrap`` (PETS), each member's data is one resample with replacement, drawn once for the
+    training call and reshuffled every epoch: a fresh resample every epoch would show each member nearly all
+    the data over the epochs.
+    """
+    resample = torch.randint(n, (members, n), generator=generator) if bootstrap else None
+    for _ in range(epochs):
+        order = torch.rand(members, n, generator=generator).argsort(dim=1)
+        yield order if resample is None else resample.gather(1, order)
+
+
 class DynamicsEnsemble:
     """A probabilistic ensemble dynamics model with its optimiser and a weights version.
 
@@ -331,12 +345,7 @@ class DynamicsEnsemble:
         epochs = epochs or config.epochs
         steps = 0
         self.net.train()
-        for _ in range(epochs):
-            if config.bootstrap:
-                order = torch.randint(n, (k, n), generator=generator)
-            else:
-                # Each member sees the data in its own order: members differ in more than their initial weights.
-                order = torch.rand(k, n, generator=generator).argsort(dim=1)
+        for order in epoch_orders(n, k, epochs, config.bootstrap, generator):
             for start in range(0, n, batch):
                 index = order[:, start : start + batch]
                 mean, logvar = self.net(inputs[index])

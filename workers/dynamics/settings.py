@@ -73,7 +73,8 @@ class EnsembleConfig(BaseModel):
     epochs: int = Field(25, ge=1)
     """Passes over all data per training call (Table 13)."""
     bootstrap: bool = False
-    """Each member draws its epoch's samples with replacement (PETS' bootstrap) instead of a fresh permutation."""
+    """Each member trains on its own sample of the data drawn with replacement, once per training call and
+    reshuffled every epoch (PETS' bootstrap), instead of all the data in its own order."""
     input_std_threshold: float = Field(1e-3, ge=0)
     """Input dimensions whose training-data std is below this are centred but not scaled (std taken as 1).
     Not in the thesis: a near-constant input (the quaternion of a cube that rarely tips) would otherwise
@@ -179,9 +180,15 @@ class SafetyBox(BaseModel):
                 f"a safety box needs one low and one high edge per dimension: "
                 f"{len(self.dims)} dims, {len(self.low)} low, {len(self.high)} high"
             )
+        if len(set(self.dims)) < len(self.dims):
+            # Eq. 34's product runs over distinct dimensions; two entries of one would multiply dependent terms.
+            raise ValueError(f"a dimension is listed twice in the safety box's dims {list(self.dims)}: give it once, "
+                             "with both its edges")  # fmt: skip
         for dim, lo, hi in zip(self.dims, self.low, self.high):
             if dim < 0:
                 raise ValueError(f"safety box dimension {dim} is negative")
+            if lo is None and hi is None:
+                raise ValueError(f"safety box dimension {dim} has neither edge: it would constrain nothing")
             if lo is not None and hi is not None and not lo < hi:
                 raise ValueError(f"safety box edge low {lo} is not below high {hi} in dimension {dim}")
         return self

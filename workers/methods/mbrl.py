@@ -206,7 +206,9 @@ class RazerCostSettings(_Settings):
         return RazerSettings(**(self.model_dump() | {"safety_boxes": boxes}))
 
     def is_pets(self) -> bool:
-        return self.mean_propagation == "none" and self.aleatoric_weight == 0 and self.epistemic_weight == 0
+        """Plain PETS: no mean propagation and no term of RAZER's cost (eq. 25-27, 35)."""
+        weights = (self.aleatoric_weight, self.epistemic_weight, self.safety_weight)
+        return self.mean_propagation == "none" and not any(weights)
 
 
 class FrozenSettings(_Settings):
@@ -645,6 +647,8 @@ class MbrlProgram(Program):
         settings: MbrlSettings = trial.settings
         razer = settings.razer
         cost = "pets" if razer.is_pets() else f"razer_wA{razer.aleatoric_weight:g}_wE{razer.epistemic_weight:g}"
+        if razer.safety_weight:  # the safety term's runs are not the plain w_A / w_E configuration's
+            cost += f"_wS{razer.safety_weight:g}_delta{razer.safety_delta:g}"
         return {"preset": str(settings.model.preset or "file"), "cost": cost}
 
     @classmethod
