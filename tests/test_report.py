@@ -254,6 +254,19 @@ def test_table_9_stands_beside_the_full_apex_only():
     # The sweep's headline, the final policy over evaluation episodes, stands for Table 9's policy too.
     assert load_sweep(sweep).sweep.metric.name == "evaluation_return"
     assert find(references, "halfcheetah_running", "apex", full, "evaluation_return").value == 4847
+    # Table 10's settings beyond the switches: another c is shown beside Table 9 untested; an expert with an
+    # iCEM improvement off (an ablation) is not compared at all.
+    from orchestrator.tracking import TrialRun
+
+    def group_of(params: dict[str, str]):
+        run = TrialRun("r", "k", FINISHED, "n", params | {"method": "apex", "task": "halfcheetah_running"}, {},
+                       {"final_evaluation_return": 4000.0})  # fmt: skip
+        return report.summarize([run], "evaluation_return", references=references).groups[0]
+
+    assert group_of(full).reference.value == 4847 and group_of(full).comparison.verdict == "untested"  # one run
+    other_c = group_of(full | {"c": "0.1"})
+    assert other_c.reference.value == 4847 and other_c.comparison.test == "not tested: ran c=0.1 (published 0.025)"
+    assert group_of(full | {"planner.keep_elites": "False"}).reference is None
 
 
 def fabricate(
