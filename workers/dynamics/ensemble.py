@@ -51,8 +51,8 @@ from workers.dynamics.settings import ENSEMBLE_PRESETS, PRESET_SHAPES, EnsembleC
 from workers.reparameterise import rescale_inputs_of
 
 CHECKPOINT_FORMAT = 2
-"""2: the state bounds of the propagation clamp (EnsembleConfig.state_margin) are part of the weights."""
-"""Version of the layout written by :meth:`DynamicsEnsemble.export_state`."""
+"""Version of the layout written by :meth:`DynamicsEnsemble.export_state`. 2: the state bounds of the
+propagation clamp (EnsembleConfig.state_margin) are part of the weights."""
 
 LOGVAR_AT_BOUND = 0.1
 """A predicted log-variance within this distance of a bound counts as "at the bound" in :class:`TrainStats`."""
@@ -342,7 +342,7 @@ class DynamicsEnsemble:
         n, k = len(inputs), self.ensemble_size
         generator = torch.Generator().manual_seed(seed)
         batch = min(config.batch_size, n)
-        epochs = epochs or config.epochs
+        epochs = config.epochs if epochs is None else epochs
         steps = 0
         self.net.train()
         for order in epoch_orders(n, k, epochs, config.bootstrap, generator):

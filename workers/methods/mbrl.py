@@ -189,7 +189,9 @@ class RazerCostSettings(_Settings):
     safety_weight: float = Field(0.0, ge=0)
     """w_S (c_max of eq. 35), the cost per step whose violation probability exceeds delta; 0 disables safety."""
     safety_delta: float = Field(0.05, gt=0, lt=1)
-    """delta of eq. 35, the tolerated violation probability per step, in (0, 1); not published (Fig. 36b varies it)."""
+    """delta of eq. 35, the tolerated violation probability per step, in (0, 1); not published for the safety runs
+    (Fig. 36b varies it). Table 15's "delta 0.0" is read as another field of the authors' framework: BridgeMaze
+    has no violation set, and delta 0 would count every step with any chance of violation."""
     safety_boxes: tuple[SafetyBox, ...] | None = None
     """Violation sets C (App. D.1.3) as boxes over state dimensions; None: the task's own (Noisy-HalfCheetah's
     ceiling; none for BridgeMaze)."""
@@ -789,7 +791,9 @@ class MbrlProgram(Program):
                 self._add(outcome.trajectory, 0)
             metrics |= self._episode_metrics(outcomes)
         if self.trainer is not None and self.buffer.steps:
-            metrics |= self._train(0, self.buffer.steps)  # nothing is held out: the model has seen nothing yet
+            # Nothing is held out: a fresh model has seen nothing (an initial model's held-out score on the random
+            # episodes is not taken either).
+            metrics |= self._train(0, self.buffer.steps)
         metrics |= self._data_metrics()
         return metrics, self._model_artifacts(0)
 
