@@ -23,6 +23,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -656,18 +657,27 @@ def test_the_first_round_an_attempt_logs_is_the_one_checked_for_a_partial_log(tm
     assert flags == [True, False]  # round 1 was skipped; round 2 is checked, round 3 is new
 
 
+def started_toy_trial(tmp_path, name: str, **state: Any):
+    """(tracker, scheduler, trial state) of a toy sweep whose sweep and trial runs are started, no Ray: for the
+    scheduler's own steps on an attempt."""
+    from orchestrator.scheduler import TrialState
+
+    sweep = toy_sweep(tmp_path, name)
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    parent = tracker.start_sweep(name, "r", "hash", sweep.read_text(), {}, "dev")
+    trial_state = TrialState(load_sweep(sweep).trials[0], 4, attempts=1, **state)
+    trial_state.run_id = tracker.start_trial(parent, trial_state.trial.key, "trial", {"seed": 0}, {})
+    return tracker, scheduler, trial_state
+
+
 def test_recoveries_made_before_a_round_failed_are_recorded_and_spend_the_budget(tmp_path):
     """The runner recovered a worker, then lost one with no recovery left: both losses are in MLflow and in the
     budget (before, the recovery vanished with the round and the next attempt got it back)."""
     from orchestrator.failures import LOST_PROCESS, Failure
-    from orchestrator.scheduler import Attempt, TrialState
+    from orchestrator.scheduler import Attempt
 
-    sweep = toy_sweep(tmp_path, "recovered_then_lost")
-    tracker = Tracker(default_tracking_uri(tmp_path))
-    scheduler = SweepScheduler(load_sweep(sweep), tracker)
-    parent = tracker.start_sweep("recovered_then_lost", "r", "hash", sweep.read_text(), {}, "dev")
-    state = TrialState(load_sweep(sweep).trials[0], 4, attempts=1, lost_left=2)
-    state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    tracker, scheduler, state = started_toy_trial(tmp_path, "recovered_then_lost", lost_left=2)
     failure = Failure(LOST_PROCESS, "trainer lost", "detail", "sig", recovered=("trainer lost: first",))
     assert scheduler._failed(Attempt(state, RunnerlessGroup(), phase="running"), failure) == "retry"
     assert state.lost_left == 0 and state.recovered == 1
@@ -682,15 +692,10 @@ def test_stateless_workers_ray_restarted_are_recorded_once_and_spend_the_budget(
     hears of it: the driver reads the restarts from the group after each round, and once more when an attempt
     fails, and records each new one once, as a recovery that spends the lost-process budget."""
     from orchestrator.failures import LOST_PROCESS, Failure
-    from orchestrator.scheduler import Attempt, TrialState
+    from orchestrator.scheduler import Attempt
     from workers.methods import RoundReport
 
-    sweep = toy_sweep(tmp_path, "restarted")
-    tracker = Tracker(default_tracking_uri(tmp_path))
-    scheduler = SweepScheduler(load_sweep(sweep), tracker)
-    parent = tracker.start_sweep("restarted", "r", "hash", sweep.read_text(), {}, "dev")
-    state = TrialState(load_sweep(sweep).trials[0], 4, attempts=1, lost_left=5)
-    state.run_id = tracker.start_trial(parent, state.trial.key, "trial", {"seed": 0}, {})
+    tracker, scheduler, state = started_toy_trial(tmp_path, "restarted", lost_left=5)
     group = RunnerlessGroup({"relabel": 0, "planner": 0})
     attempt = Attempt(state, group, phase="running", round_index=0)
     group.restarts["relabel"] = 2
