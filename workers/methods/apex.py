@@ -128,7 +128,8 @@ class ApexSettings(MethodSettings, ExpertSwitches):
     """Extra policy episodes after each iteration's last training, from the same seeds every time (the thesis
     gives no evaluation protocol for Table 9). Timed apart from Table 12's phases (``seconds/evaluation``)."""
     evaluate_every: int = Field(1, ge=1)
-    """Evaluate every this many iterations (and after the last)."""
+    """Evaluate every this many iterations (and after the last). The summary averages the evaluations among the
+    last 5 iterations: with 2, three of them; with 5, the last one alone."""
 
     def expert_settings(self) -> ExpertSettings:
         """What the expert and relabeling workers are told."""
