@@ -400,6 +400,21 @@ def test_checkpoint_round_trip_continues_identically():
     }
 
 
+def test_a_loaded_model_is_scored_on_round_zeros_episodes_before_it_trains_on_them(tiny_run, tmp_path):
+    """Fine-tuning an initial model: its held-out NLL on the random episodes is what it had learned before;
+    a fresh model's round 0 holds nothing out."""
+    _, program, reports = tiny_run
+    assert "held_out_nll" not in reports[0].metrics
+    path = tmp_path / "model.npz"
+    path.write_bytes(reports[2].artifacts[0].data)
+    loaded = build(tiny_trial(model={}, initial_model=str(path), random_episodes=1, iterations=1))
+    try:
+        (first,) = run_rounds(loaded, [0])
+        assert math.isfinite(first.metrics["held_out_nll"]) and math.isfinite(first.metrics["held_out_mse"])
+    finally:
+        loaded.close()
+
+
 def test_a_frozen_only_trial_evaluates_a_saved_model(tiny_run, tmp_path):
     _, program, reports = tiny_run
     path = tmp_path / "model.npz"

@@ -791,9 +791,9 @@ class MbrlProgram(Program):
                 self._add(outcome.trajectory, 0)
             metrics |= self._episode_metrics(outcomes)
         if self.trainer is not None and self.buffer.steps:
-            # Nothing is held out: a fresh model has seen nothing (an initial model's held-out score on the random
-            # episodes is not taken either).
-            metrics |= self._train(0, self.buffer.steps)
+            # A loaded model is scored on the random episodes before it trains on them (held out, as an
+            # iteration's newest episode is); a fresh one has learned nothing to score.
+            metrics |= self._train(0, 0 if settings.initial_model is not None else self.buffer.steps)
         metrics |= self._data_metrics()
         return metrics, self._model_artifacts(0)
 
