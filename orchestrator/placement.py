@@ -21,6 +21,8 @@ the trial resumes from its last checkpoint in a new group.
 
 from __future__ import annotations
 
+import functools
+import inspect
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -41,6 +43,45 @@ def _get(role: str, ref: ray.ObjectRef) -> Any:
         return ray.get(ref)
     except LOST_ACTOR_ERRORS as error:  # the whole text: it says why (a memory kill, a node lost)
         raise RoleWorkerLost(role, f"{type(error).__name__}: {error}") from error
+    except ray.exceptions.RayTaskError as error:  # a restarted stateful worker's refusal (restart_guarded)
+        if isinstance(error.cause, RoleWorkerLost):
+            raise RoleWorkerLost(error.cause.role, error.cause.cause) from None
+        raise
+
+
+def restart_guarded(role: RoleSpec) -> type:
+    """The role's worker class, refusing calls on an instance Ray restarted until its state is loaded.
+
+    A stateful worker killed between calls (an ensemble trainer while the round plans) is restarted by Ray
+    without its state, and no call fails: the next call would work on from a fresh worker, silently. This
+    subclass notices that it was restarted and raises RoleWorkerLost on every call but ``role.state_loader``
+    (and ``pid``), so the runner restores the program from its last completed round, which hands the worker
+    its state, and runs the round again, as for a loss during a call.
+    """
+    worker, loader = role.worker, role.state_loader
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        worker.__init__(self, *args, **kwargs)
+        self._restarted_empty = ray.get_runtime_context().was_current_actor_reconstructed
+
+    def guarded(name: str, method: Any) -> Any:
+        @functools.wraps(method)
+        def call(self, *args: Any, **kwargs: Any) -> Any:
+            if self._restarted_empty and name not in (loader, "pid"):
+                raise RoleWorkerLost(role.name, "the worker was lost between calls and restarted without its state")
+            result = method(self, *args, **kwargs)
+            if name == loader:
+                self._restarted_empty = False
+            return result
+
+        return call
+
+    methods = {
+        name: guarded(name, member)
+        for name, member in inspect.getmembers(worker, inspect.isfunction)
+        if not name.startswith("_")
+    }
+    return type(worker.__name__, (worker,), {"__init__": __init__, **methods})
 
 
 class RayPending:
@@ -206,7 +247,7 @@ class TrialGroup:
                 num_gpus=role.gpus,
                 max_restarts=self.max_restarts,
                 max_task_retries=0 if role.stateful else -1,
-            )(role.worker)
+            )(restart_guarded(role) if role.stateful else role.worker)
             actors = []
             for bundle in self.layout.roles[role.name]:
                 strategy = PlacementGroupSchedulingStrategy(self.placement, placement_group_bundle_index=bundle)

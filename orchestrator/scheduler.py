@@ -769,10 +769,14 @@ class SweepScheduler:
             ready, _ = ray.wait([attempt.progress_ref], timeout=0)
             if ready:
                 try:
-                    attempt.progress = ray.get(attempt.progress_ref)
-                    attempt.rss_mb = attempt.progress.get("rss_mb", attempt.rss_mb)
+                    reply = ray.get(attempt.progress_ref)
                 except Exception:  # a dying runner; its round reference reports why
-                    pass
+                    reply = {}
+                # A poll sent during the round before may be answered after the next began: its fraction (about
+                # 1) is not the new round's.
+                if reply.get("round") == attempt.round_index:
+                    attempt.progress = reply
+                attempt.rss_mb = reply.get("rss_mb", attempt.rss_mb)
                 attempt.progress_ref = None
 
     # ------------------------------------------------------------- sweep

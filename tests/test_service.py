@@ -339,6 +339,74 @@ def test_killed_trainer_is_recovered_in_place_from_the_last_round(tmp_path, loca
     assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
 
 
+def test_a_progress_reply_from_the_round_before_is_not_shown_as_the_next_ones(tmp_path, local_ray):
+    """The runner answers progress polls while it works; a reply sent as round 1 ended (fraction 0.9) and read
+    once round 2 began must not stand for round 2 (an MBRL frozen row's ETA would be hours early)."""
+    from orchestrator.scheduler import Attempt
+
+    _, scheduler, state = started_toy_trial(tmp_path, "stale")
+    attempt = Attempt(state, RunnerlessGroup(), phase="running", round_index=2)
+    scheduler._active = [attempt]
+    attempt.progress_ref = ray.put({"round": 1, "fraction": 0.9, "text": "step 9", "rss_mb": 50.0})
+    scheduler._poll_progress()
+    assert attempt.progress == {} and attempt.rss_mb == 50.0 and attempt.progress_ref is None
+    attempt.progress_ref = ray.put({"round": 2, "fraction": 0.2, "text": "step 2", "rss_mb": 51.0})
+    scheduler._poll_progress()
+    assert attempt.progress["fraction"] == 0.2
+
+
+@pytest.mark.slow  # a whole sweep that waits out a worker's restart
+def test_a_trainer_killed_between_calls_is_not_left_to_work_on_from_nothing(tmp_path, local_ray):
+    """SIGKILL the stateful trainer while it is idle (round 3 collects its episode, held there until the trainer
+    is back): Ray restarts it fresh and no call fails. The restarted trainer refuses to train until it is handed
+    its state, so the round runs again from the last completed one, the loss is recorded, and the trial ends as
+    if unharmed."""
+    from ray._private import state as actor_table
+
+    pause = tmp_path / "pause"
+    sweep = toy_sweep(tmp_path, "idle_kill", steps=20, step_seconds=0.2, pause_file=str(pause))
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    scheduler = SweepScheduler(load_sweep(sweep), tracker)
+    killed = {}
+
+    def kill_the_idle_trainer_in_round_three():
+        def collecting_round_three():
+            active = scheduler._active
+            if active and active[0].phase == "running" and active[0].round_index == 2:
+                if active[0].progress.get("round") == 2 and 0 < (active[0].progress.get("fraction") or 0) < 0.5:
+                    return active[0].group.workers["trainer"][0]
+            return None
+
+        trainer = wait_for(collecting_round_three, timeout=120, interval=0.02, what="round 3's collection")
+        pause.touch()
+        info = actor_table.actors(actor_id=trainer._actor_id.hex())
+        os.kill(info["Pid"], signal.SIGKILL)
+        killed["pid"] = info["Pid"]
+
+        def back_up() -> bool:
+            info = actor_table.actors(actor_id=trainer._actor_id.hex())
+            return info["State"] == "ALIVE" and info["NumRestarts"] == 1
+
+        wait_for(back_up, timeout=120, interval=0.05, what="the trainer's restart")
+        killed["round"] = scheduler._active[0].progress.get("round")
+        pause.unlink()
+
+    killer = threading.Thread(target=kill_the_idle_trainer_in_round_three, daemon=True)
+    killer.start()
+    outcome = scheduler.run()
+    killer.join(timeout=5)
+    assert killed.get("round") == 2 and (outcome.finished, outcome.failed) == (1, 0)
+
+    _, (child,) = sweep_runs(tracker.uri, "idle_kill")
+    assert child.status == FINISHED and child.attempts == 1
+    assert history(tracker, child.run_id, "recovered/lost_process") == [(1, 1.0)]
+    (recovery,) = tracker.list_files(child.run_id, "failures")
+    text = tracker.download(child.run_id, recovery, tmp_path / "recovery").read_text()
+    assert "restarted without its state" in text  # refused by the restarted trainer, not a failed call
+    assert [v for _, v in history(tracker, child.run_id, "weights_version")] == [1, 2, 3, 4]
+    assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
+
+
 class DriverDied(BaseException):
     """Stands for the driver process dying at that point: nothing of the scheduler's handles it."""
 

@@ -32,6 +32,10 @@ class ToySettings(MethodSettings):
     """Environment steps per collected episode."""
     train_seconds: float = Field(0.0, ge=0)
     """Extra seconds every training call sleeps (gives fault tests time to kill the trainer mid-call)."""
+    step_seconds: float = Field(0.0, ge=0)
+    """Seconds every collected step sleeps (gives fault tests time to act while the trainer is idle)."""
+    pause_file: str | None = None
+    """Collecting waits while this file exists (a fault test holds the round there while a worker restarts)."""
     fail_on_round: int | None = None
     """Raise in this round (a deterministic code error)."""
     fail_until_file: str | None = None
@@ -132,6 +136,9 @@ class ToyProgram(Program):
             action = self.rng.uniform(-1, 1, self.task.action_dim)
             outcome = self.task.step_env(self.env, action)
             recorder.add(action, outcome.reward, self.task.observe(outcome.observation))
+            time.sleep(self.trial.settings.step_seconds)
+            while settings.pause_file and os.path.exists(settings.pause_file):
+                time.sleep(0.05)
             self.set_progress((t + 1) / self.trial.settings.steps, f"step {t + 1}")
         self.buffer.add(recorder.finish())
         transitions = self.buffer.transitions()

@@ -74,6 +74,9 @@ class RoleSpec(NamedTuple):
     state after its last completed round, and the round runs again."""
     gpus: float = 0.0
     """GPUs each worker holds."""
+    state_loader: str = "load_state_dict"
+    """A stateful worker's method that hands it its state. A worker the service restarted after a loss between
+    calls refuses every other call (RoleWorkerLost) until this one has run, so it never works on from nothing."""
 
 
 class RoleWorkerLost(RuntimeError):

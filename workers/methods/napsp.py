@@ -206,7 +206,7 @@ class NapspProgram(Program):
             "seed": trial.seed,
             "threads": unit_cpus,
         }
-        roles = [RoleSpec("learner", LearnerWorker, 1, share, learner, stateful=True)]
+        roles = [RoleSpec("learner", LearnerWorker, 1, share, learner, stateful=True, state_loader="load")]
         if distance:
             kwargs = {
                 "distance": settings.distance.model_dump(),
@@ -218,7 +218,7 @@ class NapspProgram(Program):
                 "seed": trial.seed,
                 "threads": unit_cpus,
             }
-            roles.append(RoleSpec("distance", DistanceWorker, 1, share, kwargs, stateful=True))
+            roles.append(RoleSpec("distance", DistanceWorker, 1, share, kwargs, stateful=True, state_loader="load"))
         return roles
 
     @classmethod
