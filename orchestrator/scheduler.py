@@ -527,8 +527,11 @@ class SweepScheduler:
                     else:
                         failed += 1
                     continue
-                if self._advance(attempt, value):
+                outcome = self._advance(attempt, value)
+                if outcome == "finished":
                     done += 1
+                elif outcome == "failed":
+                    failed += 1
 
             self._poll_progress()
             now = time.monotonic()
@@ -632,8 +635,9 @@ class SweepScheduler:
         group = TrialGroup(config.spec(), self._threads, self.counts, self.sweep.max_lost_processes)
         return Attempt(state, group, "placing", group.ready())
 
-    def _advance(self, attempt: Attempt, value: Any) -> bool:
-        """Move an attempt on after its call returned; True when its trial finished."""
+    def _advance(self, attempt: Attempt, value: Any) -> str | None:
+        """Move an attempt on after its call returned: "finished" when its trial finished, "failed" when the
+        round's recoveries spent the lost-process budget past its end, else None."""
         import ray
 
         state = attempt.state
@@ -649,12 +653,12 @@ class SweepScheduler:
             else:
                 attempt.phase, attempt.round_index = "running", 0
                 attempt.ref = runner.run_round.remote(0)
-            return False
+            return None
         if attempt.phase == "restoring":
             attempt.phase, attempt.round_index = "running", int(value)
             attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
             attempt.progress = {}  # the ETA must not count an earlier round's fraction as this one's
-            return False
+            return None
 
         round_report, data, recovered = value
         self._record_recoveries(state, recovered)
@@ -692,10 +696,13 @@ class SweepScheduler:
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
         state.progressed()
         if not round_report.done:
-            return False
+            if state.lost_left < 0:  # the round's recoveries went past the budget: the trial stops at this round
+                self._failed(attempt, self._budget_spent(state))
+                return "failed"
+            return None
         state.rounds_done = state.total_rounds
         self._end_attempt(attempt)
-        return True
+        return "finished"
 
     def _record_recoveries(self, state: TrialState, causes: Sequence[str]) -> None:
         """Stateful workers lost and recovered in place by the runner: they spend the lost-process budget."""
@@ -713,6 +720,16 @@ class SweepScheduler:
                 cause = f"a worker of role {role!r} was lost; Ray restarted it and retried its call (stateless)"
                 self._record_recoveries(attempt.state, [cause] * lost)
                 attempt.restarts_seen[role] = count
+
+    def _budget_spent(self, state: TrialState) -> Failure:
+        """The failure of a trial whose recoveries in place (Ray restarts each worker up to the whole budget, and
+        the runner was handed what was left when its attempt began) went past ``max_lost_processes``."""
+        budget = self.sweep.max_lost_processes
+        cause = (
+            f"{budget - state.lost_left} processes lost, more than max_lost_processes = {budget}; the last round "
+            "completed is checkpointed: raise max_lost_processes and --resume to continue"
+        )
+        return Failure(LOST_PROCESS, cause, cause, "lost-process budget spent")
 
     def _cost(self, state: TrialState, attempt: Attempt) -> dict[str, float]:
         """Core-seconds per unit of the method's work, from the rounds' seconds: what later plans estimate from."""

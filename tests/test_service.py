@@ -784,6 +784,24 @@ def test_stateless_workers_ray_restarted_are_recorded_once_and_spend_the_budget(
     assert state.lost_left == 1  # three restarts and the runner's loss
 
 
+def test_recoveries_in_place_past_the_budget_stop_the_trial_after_the_round(tmp_path):
+    """Ray restarts each worker up to the whole budget, so one round can recover more than is left: the trial
+    stops once its round is logged and checkpointed, FAILED with the count, not after a later loss."""
+    from orchestrator.scheduler import Attempt
+    from workers.methods import RoundReport
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "overspent", lost_left=1)
+    group = RunnerlessGroup({"relabel": 0})
+    attempt = Attempt(state, group, phase="running", round_index=0)
+    assert scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", [])) is None
+    group.restarts["relabel"] = 2
+    assert scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", [])) == "failed"
+    run = tracker.client.get_run(state.run_id)
+    assert run.info.status == "FAILED" and "more than max_lost_processes" in run.data.tags["icemlab.error"]
+    assert [s for s, _ in history(tracker, state.run_id, "icemlab.round")] == [0, 1]  # the round is kept
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0)]
+
+
 def test_the_next_round_starts_without_the_finished_rounds_progress(tmp_path):
     """Between a round's end and the next poll of the runner, the ETA must not count the finished round's fraction
     (about 1) as progress of the next one: for an MBRL frozen row that is hours early. And a round's checkpoint
