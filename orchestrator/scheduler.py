@@ -687,8 +687,9 @@ class SweepScheduler:
             state.logged_rounds.add(round_report.index)
             attempt.logged_a_round = True
         if round_report.done:
-            # The run ends before the last checkpoint is written: a driver killed in between resumes from the
-            # checkpoint before and repeats the last round (logged once), never continues past it.
+            # The run ends before the last checkpoint is written, so a resume never continues past the last
+            # round. A driver killed in between leaves the run FINISHED without that checkpoint (the round's
+            # logged files remain); nothing runs it again.
             self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
             state.closed_here = True
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
