@@ -149,6 +149,7 @@ def test_killed_relabel_worker_loses_and_duplicates_no_labels(tmp_path, local_ra
     assert (outcome.finished, outcome.failed) == (1, 0)
     _, (child,) = sweep_runs(tracker.uri, "relabel_kill")
     assert child.status == FINISHED and child.attempts == 1  # absorbed by the restart, not a trial retry
+    assert child.metrics["recovered/lost_process"] >= 1.0  # ... and recorded, read from Ray's actor table
     assert child.metrics["dataset/relabeled_steps"] == 80  # 2 policy episodes x 40 states, each labelled once
     (undisturbed,) = run_locally(METHODS["apex"], loaded.trials[0].config.spec())
     assert {k: child.metrics[k] for k in COMPARED} == {k: undisturbed.metrics[k] for k in COMPARED}
