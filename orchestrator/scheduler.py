@@ -377,10 +377,17 @@ class SweepScheduler:
             )
 
     def group_bundles(self, unit: int) -> list[dict[str, float]]:
-        """The placement-group bundles of one trial when a unit of work gets ``unit`` CPUs."""
-        spec = self.loaded.trials[0].config.spec()
-        roles = [role for role in self.program.roles_for(spec, unit, self.counts) if role.count]
-        return bundle_layout(self.program.runner_cpus(spec, unit), roles).bundles
+        """The placement-group bundles of the sweep's largest trial when a unit of work gets ``unit`` CPUs.
+
+        Trials of one sweep may hold different groups (a napsp variant with a distance trainer holds more than
+        one without): laid out for the first only, a larger one could wait for CPUs that never come.
+        """
+        layouts = []
+        for trial in self.loaded.trials:
+            spec = trial.config.spec()
+            roles = [role for role in self.program.roles_for(spec, unit, self.counts) if role.count]
+            layouts.append(bundle_layout(self.program.runner_cpus(spec, unit), roles).bundles)
+        return max(layouts, key=lambda bundles: (sum(b["CPU"] for b in bundles), max(b["CPU"] for b in bundles)))
 
     def group_cpus(self, unit: int) -> float:
         """CPUs one trial's group holds when a unit of work gets ``unit`` CPUs."""

@@ -1014,6 +1014,31 @@ def test_a_cluster_of_one_cpu_nodes_gets_one_cpu_units_not_a_hanging_placement(t
         SweepScheduler(pinned, tracker=None).layout([1, 1], 1)
 
 
+def test_the_layout_holds_the_largest_trial_of_the_sweep_not_the_first(tmp_path):
+    """napsp's Pick&Place sweep begins with Sparse+HER (no distance trainer) and goes on to variants that hold
+    more CPUs: one trial at a time on four CPUs, every trial's group must fit, or the larger ones never start."""
+    import yaml
+
+    shipped = Path(__file__).resolve().parents[1] / "sweeps" / "paper" / "napsp_fetch_pick_place.yaml"
+    sweep = yaml.safe_load(shipped.read_text())
+    del sweep["resources"]["threads_per_worker"]  # the thread count is the layout's to choose
+    path = tmp_path / "napsp.yaml"
+    path.write_text(yaml.safe_dump(sweep, sort_keys=False))
+    loaded = load_sweep(path)
+    scheduler = SweepScheduler(loaded, Tracker(default_tracking_uri(tmp_path)), max_concurrent=1)
+    program = METHODS["napsp"]
+    sizes = {program.runner_cpus(t.config.spec(), 1)
+             + sum(r.cpus * r.count for r in program.roles_for(t.config.spec(), 1, {})) for t in loaded.trials}
+    assert len(sizes) > 1  # the premise: groups of different sizes, the first not the largest
+    threads, concurrent = scheduler.layout(4, len(loaded.trials))
+    assert concurrent == 1
+    for trial in loaded.trials:
+        spec = trial.config.spec()
+        roles = [r for r in program.roles_for(spec, threads, {}) if r.count]
+        group = bundle_layout(program.runner_cpus(spec, threads), roles).bundles
+        assert sum(b["CPU"] for b in group) <= 4, (trial.variant, threads)
+
+
 def test_a_trial_larger_than_the_cluster_is_refused_before_anything_runs(tmp_path, local_ray):
     sweep = write_sweep(tmp_path, "too_big", resources={"simulation_workers": 3, "threads_per_worker": 1})
     tracker = Tracker(default_tracking_uri(tmp_path))
