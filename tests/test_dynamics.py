@@ -130,6 +130,14 @@ def test_ensemble_fits_a_known_function_and_its_noise():
     assert stats.at_min_logvar == 0.0 and stats.at_max_logvar == 0.0
 
 
+def test_epochs_given_to_a_training_call_override_the_configured_ones_even_zero():
+    data = toy_data(200, noise=0.05)
+    batches = -(-200 // tiny_model().config.batch_size)  # per epoch
+    assert tiny_model(epochs=3).train(data, epochs=1).gradient_steps == batches
+    assert tiny_model(epochs=3).train(data, epochs=0).gradient_steps == 0  # not the configured 3
+    assert tiny_model(epochs=3).train(data).gradient_steps == 3 * batches
+
+
 def test_warm_start_continues_and_from_scratch_restarts():
     data = toy_data(1000, noise=0.05)
     warm = tiny_model(epochs=10)
