@@ -317,6 +317,8 @@ class SweepScheduler:
         self.display = display
         self.experiment = self.sweep.tracking.experiment or self.sweep.name
         self.counts = {"simulation": self.sweep.resources.simulation_workers} | dict(self.sweep.resources.workers)
+        self._largest_group: dict[int, list[dict[str, float]]] = {}
+        """The largest trial group's bundles by CPUs per unit (group_bundles looks at every trial once per unit)."""
         self._active: list[Attempt] = []
         self._states: list[TrialState] = []
         """This session's trials; the ones it launched and has not closed are its to close on an abort."""
@@ -382,12 +384,16 @@ class SweepScheduler:
         Trials of one sweep may hold different groups (a napsp variant with a distance trainer holds more than
         one without): laid out for the first only, a larger one could wait for CPUs that never come.
         """
-        layouts = []
-        for trial in self.loaded.trials:
-            spec = trial.config.spec()
-            roles = [role for role in self.program.roles_for(spec, unit, self.counts) if role.count]
-            layouts.append(bundle_layout(self.program.runner_cpus(spec, unit), roles).bundles)
-        return max(layouts, key=lambda bundles: (sum(b["CPU"] for b in bundles), max(b["CPU"] for b in bundles)))
+        if unit not in self._largest_group:
+            layouts = []
+            for trial in self.loaded.trials:
+                spec = trial.config.spec()
+                roles = [role for role in self.program.roles_for(spec, unit, self.counts) if role.count]
+                layouts.append(bundle_layout(self.program.runner_cpus(spec, unit), roles).bundles)
+            self._largest_group[unit] = max(
+                layouts, key=lambda bundles: (sum(b["CPU"] for b in bundles), max(b["CPU"] for b in bundles))
+            )
+        return self._largest_group[unit]
 
     def group_cpus(self, unit: int) -> float:
         """CPUs one trial's group holds when a unit of work gets ``unit`` CPUs."""
