@@ -54,6 +54,8 @@ class Failure(NamedTuple):
     """A memory kill (kernel OOM killer or Ray's memory monitor)."""
     recovered: tuple[str, ...] = ()
     """Causes of the role workers the runner recovered in the failed round before it failed (not yet recorded)."""
+    role: str | None = None
+    """The role whose worker's loss ended the attempt (None when it was not a role worker's, e.g. the runner's)."""
 
 
 def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
@@ -80,7 +82,9 @@ def classify(error: BaseException, memory_mb: float | None = None) -> Failure:
         text = str(cause_of_task)
         memory = bool(_MEMORY_WORDS.search(text))
         cause = _lost_cause(cause_of_task, text, memory, memory_mb)
-        return Failure(LOST_PROCESS, cause, _detail(error), _signature(cause_of_task), memory, recovered)
+        return Failure(
+            LOST_PROCESS, cause, _detail(error), _signature(cause_of_task), memory, recovered, cause_of_task.role
+        )
     lost_types = (
         rex.ActorDiedError,
         rex.ActorUnavailableError,

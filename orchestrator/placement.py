@@ -265,14 +265,26 @@ class TrialGroup:
         """How often Ray has restarted the workers of each stateless role so far, by role.
 
         Their calls are retried on the restarted process and the round goes on, so no call fails and the
-        runner never hears of the loss: the driver reads it here, from the cluster's actor table (the GCS,
-        which needs no dashboard), to record it. An actor whose entry cannot be read counts 0.
+        runner never hears of the loss: the driver reads it here to record it.
         """
+        return self._restarts(stateful=False)
+
+    def stateful_restarts(self) -> dict[str, int]:
+        """How often Ray has restarted the workers of each stateful role so far, by role.
+
+        The runner reports each one it recovers; the driver compares when an attempt ends, to record those whose
+        report died with the runner.
+        """
+        return self._restarts(stateful=True)
+
+    def _restarts(self, stateful: bool) -> dict[str, int]:
+        """Restarts by role, read from the cluster's actor table (the GCS, which needs no dashboard). An actor
+        whose entry cannot be read counts 0."""
         from ray._private import state
 
         counts: dict[str, int] = {}
         for role in self.roles:
-            if role.stateful:
+            if role.stateful != stateful:
                 continue
             counts[role.name] = 0
             for actor in self.workers.get(role.name, []):

@@ -26,6 +26,7 @@ import os
 import sys
 import time
 import traceback
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -62,7 +63,7 @@ from orchestrator.tracking import (
     encode_round_work,
     live_driver,
 )
-from workers.methods import METHODS
+from workers.methods import METHODS, RoleWorkerLost
 
 POLL_SECONDS = 0.5
 BACKOFF_SECONDS = (1.0, 2.0, 5.0, 10.0, 30.0)
@@ -206,6 +207,8 @@ class Attempt:
     """Whether this attempt has logged a round (the first it logs may be one a crash left logged in part)."""
     restarts_seen: dict[str, int] = field(default_factory=dict)
     """Restarts of each stateless role's workers already recorded (see :meth:`SweepScheduler._record_restarts`)."""
+    reported: Counter[str] = field(default_factory=Counter)
+    """Stateful workers' losses the runner reported recovered, by role (see :meth:`SweepScheduler._unreported`)."""
 
 
 class SweepState(NamedTuple):
@@ -320,6 +323,8 @@ class SweepScheduler:
         self._largest_group: dict[int, list[dict[str, float]]] = {}
         """The largest trial group's bundles by CPUs per unit (group_bundles looks at every trial once per unit)."""
         self._active: list[Attempt] = []
+        self._parent_id: str | None = None
+        """The sweep's run, once opened: what an interrupted or failing driver closes."""
         self._states: list[TrialState] = []
         """This session's trials; the ones it launched and has not closed are its to close on an abort."""
         self.allow_physics_change = allow_physics_change
@@ -327,7 +332,8 @@ class SweepScheduler:
         self._provenance = provenance.current()
 
     # -------------------------------------------------------------- plan
-    def _parent_run(self) -> tuple[str, list[TrialRun]]:
+    def _parent_run(self) -> list[TrialRun]:
+        """Open the sweep's run (``_parent_id``) anew, or reopen it on --resume; return its trial runs so far."""
         if self.resume:
             previous = self.tracker.find_sweep_run(self.experiment, self.sweep.name)
             if previous is not None:
@@ -337,8 +343,9 @@ class SweepScheduler:
                 if previous.status == RUNNING:
                     self._record_a_lost_driver(previous, runs)
                 self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash, len(self.loaded.trials))
-                return previous.run_id, runs
-        run_id = self.tracker.start_sweep(
+                self._parent_id = previous.run_id
+                return runs
+        self._parent_id = self.tracker.start_sweep(
             self.experiment,
             self.sweep.name,
             self.loaded.file_hash,
@@ -347,7 +354,7 @@ class SweepScheduler:
             icemlab_version(),
             len(self.loaded.trials),
         )
-        return run_id, []
+        return []
 
     def _record_a_lost_driver(self, sweep_run, trial_runs) -> None:
         """A sweep run still RUNNING at a resume lost its driver without a word (a driver that stops by itself
@@ -446,53 +453,27 @@ class SweepScheduler:
 
         self._refuse_a_busy_resume()
         started_ray = connect_ray(self.address)  # before any MLflow run exists: a bad address leaves no trace
-        parent_id = None
         try:
-            cpus = node_cpus()
-            self.layout(cpus, 1)  # a sweep that can never be placed is refused before anything is logged
-            parent_id, previous_runs = self._parent_run()
-            self._parent_id = parent_id
-            by_key: dict[str, TrialRun] = {}
-            for run in previous_runs:
-                if by_key.get(run.trial_key) is None or by_key[run.trial_key].status != FINISHED:
-                    by_key[run.trial_key] = run
-            states = []
-            for trial in self.loaded.trials:
-                previous = by_key.get(trial.key)
-                if previous is not None and previous.status == FINISHED:
-                    continue
-                spec = trial.config.spec()
-                planned = self.program.planned_rounds(spec)
-                state = TrialState(
-                    trial,
-                    planned,
-                    retries_left=self.sweep.retries,
-                    lost_left=self.sweep.max_lost_processes,
-                    round_work=checked_round_work(self.program.round_work(spec, self.counts), planned),
-                )
-                if previous is not None:
-                    state.run_id = previous.run_id
-                    state.attempts = previous.attempts
-                    state.recovered = self.tracker.recoveries(previous.run_id)  # numbered on, not over
-                    state.logged_rounds = self.tracker.logged_rounds(previous.run_id)
-                    state.rounds_done = len(state.logged_rounds)
-                    state.threads = previous.threads_per_worker
-                states.append(state)
-            skipped = len(self.loaded.trials) - len(states)
-            threads, concurrent = self._layout_to_continue(cpus, states)
+            # Ctrl-C from here on is a flag, acted on where the runs it must close are known: one that raised
+            # while the sweep's run was being opened or a lost driver recorded would leave the sweep RUNNING.
             with InterruptRequest() as interrupt:
-                return self._drive(parent_id, states, skipped, threads, concurrent, interrupt)
+                cpus = node_cpus()
+                self.layout(cpus, 1)  # a sweep that can never be placed is refused before anything is logged
+                states = self._pending_states(self._parent_run())
+                skipped = len(self.loaded.trials) - len(states)
+                threads, concurrent = self._layout_to_continue(cpus, states)
+                return self._drive(self._parent_id, states, skipped, threads, concurrent, interrupt)
         except KeyboardInterrupt:
-            if parent_id is not None:
-                self._abort(parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
+            if self._parent_id is not None:
+                self._abort(self._parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
             raise
         except Exception as error:
             # The driver itself failed (the tracking store, a round report it could not log, ...): say so in
             # MLflow rather than leave the runs RUNNING; the trials continue with --resume.
-            if parent_id is not None:
+            if self._parent_id is not None:
                 cause = f"the driver stopped: {type(error).__name__}: {error}"
                 try:
-                    self._abort(parent_id, DRIVER_ERROR, cause, traceback.format_exc())
+                    self._abort(self._parent_id, DRIVER_ERROR, cause, traceback.format_exc())
                     error.recorded_in_mlflow = True  # type: ignore[attr-defined]  # read by the CLI's message
                 except Exception as recording:  # the store itself may be what failed
                     log.error("the driver's failure could not be recorded in MLflow: %s", recording)
@@ -502,6 +483,36 @@ class SweepScheduler:
                 attempt.group.teardown()
             if started_ray:
                 ray.shutdown()
+
+    def _pending_states(self, previous_runs: list[TrialRun]) -> list[TrialState]:
+        """A state per trial not yet FINISHED, carrying on from its run where an earlier driver left one."""
+        by_key: dict[str, TrialRun] = {}
+        for run in previous_runs:
+            if by_key.get(run.trial_key) is None or by_key[run.trial_key].status != FINISHED:
+                by_key[run.trial_key] = run
+        states = []
+        for trial in self.loaded.trials:
+            previous = by_key.get(trial.key)
+            if previous is not None and previous.status == FINISHED:
+                continue
+            spec = trial.config.spec()
+            planned = self.program.planned_rounds(spec)
+            state = TrialState(
+                trial,
+                planned,
+                retries_left=self.sweep.retries,
+                lost_left=self.sweep.max_lost_processes,
+                round_work=checked_round_work(self.program.round_work(spec, self.counts), planned),
+            )
+            if previous is not None:
+                state.run_id = previous.run_id
+                state.attempts = previous.attempts
+                state.recovered = self.tracker.recoveries(previous.run_id)  # numbered on, not over
+                state.logged_rounds = self.tracker.logged_rounds(previous.run_id)
+                state.rounds_done = len(state.logged_rounds)
+                state.threads = previous.threads_per_worker
+            states.append(state)
+        return states
 
     def _drive(self, parent_id, states, skipped, threads, concurrent, interrupt) -> SweepOutcome:
         import ray
@@ -668,6 +679,10 @@ class SweepScheduler:
                 attempt.ref = runner.run_round.remote(0)
             return None
         if attempt.phase == "restoring":
+            if int(value) >= state.total_rounds:
+                # The driver died after the last checkpoint and before the run was closed: the summary was
+                # written before that checkpoint, so closing the run is all that is left.
+                return self._close_finished(attempt)
             attempt.phase, attempt.round_index = "running", int(value)
             attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
             attempt.progress = {}  # the ETA must not count an earlier round's fraction as this one's
@@ -675,6 +690,7 @@ class SweepScheduler:
 
         round_report, data, recovered = value
         self._record_recoveries(state, recovered)
+        attempt.reported.update(RoleWorkerLost.role_in(cause) for cause in recovered)
         self._record_restarts(attempt)
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
@@ -700,11 +716,11 @@ class SweepScheduler:
             state.logged_rounds.add(round_report.index)
             attempt.logged_a_round = True
         if round_report.done:
-            # The run ends before the last checkpoint is written, so a resume never continues past the last
-            # round. A driver killed in between leaves the run FINISHED without that checkpoint (the round's
-            # logged files remain); nothing runs it again.
-            self.tracker.end_trial(state.run_id, FINISHED, dict(round_report.summary) | self._cost(state, attempt))
-            state.closed_here = True
+            # Summary, last checkpoint, then FINISHED: a FINISHED run is never resumed, so a run closed before its
+            # last checkpoint was written would keep the final model nowhere. A driver killed before the
+            # checkpoint is complete runs the last round again on --resume (the summary is kept once); one killed
+            # after it restores that checkpoint and only closes the run.
+            self.tracker.record_summary(state.run_id, dict(round_report.summary) | self._cost(state, attempt))
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
         state.bad_checkpoints.discard(round_report.index)  # written anew: the refused one is gone
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
@@ -714,6 +730,13 @@ class SweepScheduler:
                 self._failed(attempt, self._budget_spent(state))
                 return "failed"
             return None
+        return self._close_finished(attempt)
+
+    def _close_finished(self, attempt: Attempt) -> str:
+        """End a trial whose last round is logged, summarised and checkpointed: its run FINISHED."""
+        state = attempt.state
+        self.tracker.end_trial(state.run_id, FINISHED)
+        state.closed_here = True
         state.rounds_done = state.total_rounds
         self._end_attempt(attempt)
         return "finished"
@@ -728,12 +751,41 @@ class SweepScheduler:
     def _record_restarts(self, attempt: Attempt) -> None:
         """Stateless workers that Ray restarted since the last look: their calls were retried and the trial went
         on untouched, but each was a lost process, so it is recorded as a recovery and spends the budget."""
+        self._record_recoveries(attempt.state, self._new_restarts(attempt))
+
+    def _new_restarts(self, attempt: Attempt) -> list[str]:
+        """Causes of the stateless workers Ray restarted since the last look (which they are marked seen by)."""
+        causes = []
         for role, count in attempt.group.stateless_restarts().items():
             lost = count - attempt.restarts_seen.get(role, 0)
             if lost > 0:
                 cause = f"a worker of role {role!r} was lost; Ray restarted it and retried its call (stateless)"
-                self._record_recoveries(attempt.state, [cause] * lost)
+                causes += [cause] * lost
                 attempt.restarts_seen[role] = count
+        return causes
+
+    def _unreported(self, attempt: Attempt, ending: str, failure: Failure | None = None) -> list[str]:
+        """Causes of the stateful workers Ray restarted in this attempt that neither the runner reported nor the
+        failure is about: the runner reports a recovery only with its round's result or error, so a runner lost
+        (or stopped by Ctrl-C) later in the round takes the report with it. Ray's actor table still counts the
+        restart.
+
+        Args:
+            ending: how the attempt ended (a failure's kind, or an abort's), for the cause.
+        """
+        accounted = Counter(attempt.reported)
+        if failure is not None:
+            accounted.update(RoleWorkerLost.role_in(cause) for cause in failure.recovered)
+            if failure.role is not None:
+                accounted[failure.role] += 1
+        causes = []
+        for role, count in attempt.group.stateful_restarts().items():
+            cause = (
+                f"a worker of role {role!r} was lost and Ray restarted it; the attempt ended ({ending}) before "
+                "the trial's runner reported it"
+            )
+            causes += [cause] * max(0, count - accounted[role])
+        return causes
 
     def _budget_spent(self, state: TrialState) -> Failure:
         """The failure of a trial whose recoveries in place (Ray restarts each worker up to the whole budget, and
@@ -755,10 +807,12 @@ class SweepScheduler:
         """Record a failed attempt and decide: "retry" (queued again) or "failed" (the trial is FAILED)."""
         state = attempt.state
         self._record_restarts(attempt)  # those Ray made before the failure
+        unreported = self._unreported(attempt, failure.kind, failure)  # read before the actors go
         self._end_attempt(attempt)
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
         detail = "the same error as an earlier attempt (see its file)" if repeat else failure.detail
         self._record_recoveries(state, failure.recovered)  # made in the round before it failed
+        self._record_recoveries(state, unreported)
         self.tracker.record_failure(state.run_id, state.attempts, failure.kind, failure.cause, detail)
         if failure.kind == BAD_CHECKPOINT and attempt.checkpoint_round is not None:
             state.bad_checkpoints.add(attempt.checkpoint_round)
@@ -839,7 +893,12 @@ class SweepScheduler:
         The actors stop first (that needs no MLflow: a failing store must not hold the cluster's CPUs through
         its retries), then each run is recorded on its own, so one refused write does not leave the rest RUNNING;
         the first error of the store is raised at the end."""
+        lost: dict[int, list[str]] = {}  # workers lost in the rounds cut short, read while the actors exist
         for attempt in list(self._active):
+            try:
+                lost[id(attempt.state)] = self._new_restarts(attempt) + self._unreported(attempt, kind)
+            except Exception:  # noqa: BLE001 - the cluster's table may be going down with the same signal
+                pass
             try:
                 self._end_attempt(attempt)
             except Exception:  # Ray itself may be going down with the same signal
@@ -848,6 +907,7 @@ class SweepScheduler:
         # A trial whose launch failed before its run was created has no run to close.
         for state in [s for s in self._states if s.launched_here and not s.closed_here and s.run_id is not None]:
             try:
+                self._record_recoveries(state, lost.get(id(state), []))
                 run = self.tracker.trial_run(state.run_id)
                 if run is not None and run.status == RUNNING:
                     self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)

@@ -605,21 +605,32 @@ class Tracker:
         self.record_failure(run_id, self._failure_files(run_id, "attempt_") + 1, kind, cause, detail)
 
     def recoveries(self, run_id: str) -> int:
-        """How many in-place recoveries a trial's run records (the next one is numbered after them)."""
-        return self._failure_files(run_id, "recovery_")
+        """How many in-place recoveries a trial's run records (the next one is numbered after them): its files, or
+        its metric's last step where a driver died between writing the metric and the file."""
+        keys = [key for key in self.client.get_run(run_id).data.metrics if key.startswith("recovered/")]
+        steps = [step for key in keys for step, _ in self.metric_history(run_id, key)]
+        return max([self._failure_files(run_id, "recovery_"), *steps])
 
     def _failure_files(self, run_id: str, prefix: str) -> int:
         return sum(1 for path in self.list_files(run_id, "failures") if path.rsplit("/", 1)[-1].startswith(prefix))
 
+    def record_summary(self, run_id: str, summary: Mapping[str, float]) -> None:
+        """A trial's summary metrics, written once: a second call (a resume that ran the last round again) keeps
+        the first."""
+        if TAG_SUMMARY in self.client.get_run(run_id).data.tags:
+            return
+        now = _now_ms()
+        metrics = [Metric(k, float(v), now, 0) for k, v in summary.items()]
+        # One batch with its tag: a driver killed while it is sent leaves either all of it or none.
+        self.client.log_batch(run_id, metrics=metrics, tags=[RunTag(TAG_SUMMARY, "1")])
+
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
         """Close a trial's run: FINISHED with its summary metrics (once, also when a driver died while it closed
         the run), or FAILED / KILLED."""
-        tags = self.client.get_run(run_id).data.tags if summary or status == FINISHED else {}
-        if summary and TAG_SUMMARY not in tags:
-            now = _now_ms()
-            metrics = [Metric(k, float(v), now, 0) for k, v in summary.items()]
-            self.client.log_batch(run_id, metrics=metrics, tags=[RunTag(TAG_SUMMARY, "1")])
+        if summary:
+            self.record_summary(run_id, summary)
         if status == FINISHED:
+            tags = self.client.get_run(run_id).data.tags
             # Earlier attempts' errors stay in failures/; the tags describe why a run is not FINISHED.
             for tag in (TAG_ERROR, TAG_ERROR_CLASS):
                 if tag in tags:

@@ -105,6 +105,29 @@ def test_a_round_that_fails_after_a_recovery_carries_the_recovery_to_the_driver(
     assert "a worker of role 'trainer' was lost: killed" in failure.recovered[0]
 
 
+def test_a_loss_whose_restore_fails_is_handed_on_once_not_also_as_recovered(monkeypatch):
+    """The runner could not hand the restarted worker its state: that loss is the round's error (the driver
+    records it as the attempt's failure), not a recovery too."""
+    from orchestrator.failures import LOST_PROCESS, classify
+    from workers import actors
+
+    class NeverRestored(LosingGroup):
+        def submit(self, member: int, method: str, *args):
+            if method == "load_state_dict":
+                raise RoleWorkerLost(self.name, "still restarting")
+            return super().submit(member, method, *args)
+
+    monkeypatch.setattr(actors, "RESTART_PAUSES", (0.0, 0.0))
+    trial = toy_trial()
+    (spec,) = toy_method.ToyProgram.roles_for(trial, 1, {})
+    harmed = ProgramRunner(trial, {"trainer": NeverRestored(spec, "train", {1})}, 1, recoveries=5)
+    with pytest.raises(RoleWorkerLost) as lost:
+        harmed.run_round(0)
+    failure = classify(pickle.loads(pickle.dumps(lost.value)))
+    assert failure.kind == LOST_PROCESS and failure.recovered == () and failure.role == "trainer"
+    assert harmed.recoveries_left == 5
+
+
 def test_a_round_that_fails_without_a_recovery_carries_none():
     from orchestrator.failures import classify
 

@@ -454,20 +454,25 @@ class RunnerlessGroup:
 
     runner = type("Runner", (), {"run_round": _Call()})()
 
-    def __init__(self, restarts: dict[str, int] | None = None):
+    def __init__(self, restarts: dict[str, int] | None = None, stateful: dict[str, int] | None = None):
         self.restarts = restarts or {}
         """What the group says Ray has restarted of its stateless roles so far."""
+        self.stateful = stateful or {}
+        """... and of its stateful roles."""
 
     def stateless_restarts(self) -> dict[str, int]:
         return dict(self.restarts)
+
+    def stateful_restarts(self) -> dict[str, int]:
+        return dict(self.stateful)
 
     def teardown(self):
         pass
 
 
-def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no_further(tmp_path, local_ray):
-    """The driver dies as it closes the finished trial: the resume must not continue past the last round (a
-    checkpoint of the last round written before the run ended would make it run a fifth)."""
+def test_a_driver_killed_as_the_last_round_ends_closes_the_run_on_resume_and_goes_no_further(tmp_path, local_ray):
+    """The driver dies as it closes the finished trial, after the last checkpoint: the resume restores that
+    checkpoint and closes the run; it neither repeats the last round nor runs a fifth."""
     sweep = toy_sweep(tmp_path, "last_round")
     uri = default_tracking_uri(tmp_path)
     dying = DyingTracker(uri, "end_trial", lambda run_id, status, *_: status == FINISHED, DriverDied())
@@ -475,6 +480,7 @@ def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no
         SweepScheduler(load_sweep(sweep), dying).run()
     (child,) = sweep_runs(uri, "last_round")[1]
     assert child.status == RUNNING and [s for s, _ in history(dying, child.run_id, "icemlab.round")] == [0, 1, 2, 3]
+    assert dying.load_checkpoint(child.run_id)[0].round_index == 3  # the final model is kept before the run closes
 
     tracker = Tracker(uri)
     outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
@@ -484,6 +490,28 @@ def test_a_driver_killed_as_the_last_round_ends_repeats_it_on_resume_and_goes_no
     assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # each round once
     assert [v for _, v in history(tracker, child.run_id, "loss")] == uninterrupted_toy_losses(sweep)
     assert child.metrics["final_loss"] == uninterrupted_toy_losses(sweep)[-1]
+
+
+def test_a_store_refusing_the_last_checkpoint_leaves_the_trial_to_resume_not_finished(tmp_path, local_ray):
+    """The last round's checkpoint holds the final model (of MBRL and neural APSP, nowhere else): a store that
+    refuses it must not leave the run FINISHED without it, which no resume would ever run again."""
+    sweep = toy_sweep(tmp_path, "last_checkpoint")
+    uri = default_tracking_uri(tmp_path)
+    dying = DyingTracker(uri, "save_checkpoint", lambda run_id, index, *_: index == 3, OSError("disk full"))
+    with pytest.raises(OSError, match="disk full"):
+        SweepScheduler(load_sweep(sweep), dying).run()
+    (child,) = sweep_runs(uri, "last_checkpoint")[1]
+    assert child.status == KILLED and child.error_class == "driver_error"
+    assert len(history(dying, child.run_id, "final_loss")) == 1  # the summary came before the checkpoint
+
+    tracker = Tracker(uri)
+    outcome = SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
+    assert (outcome.finished, outcome.failed) == (1, 0)
+    (child,) = sweep_runs(uri, "last_checkpoint")[1]
+    assert child.status == FINISHED and child.attempts == 2
+    assert tracker.load_checkpoint(child.run_id)[0].round_index == 3
+    assert [s for s, _ in history(tracker, child.run_id, "icemlab.round")] == [0, 1, 2, 3]  # round 3 ran again
+    assert history(tracker, child.run_id, "final_loss") == [(0, uninterrupted_toy_losses(sweep)[-1])]
 
 
 def test_a_driver_killed_between_the_summary_and_closing_the_run_logs_the_summary_once(tmp_path, local_ray):
@@ -611,6 +639,39 @@ def test_an_abort_passes_over_a_trial_whose_run_was_never_created(tmp_path):
     scheduler._states = [unborn]
     scheduler._abort(parent, "interrupted", "interrupted (Ctrl-C)", "")
     assert sweep_runs(default_tracking_uri(tmp_path), "no_run")[0].status == KILLED
+
+
+def test_ctrl_c_while_the_sweeps_run_is_opened_ends_it_killed_not_running(tmp_path, local_ray):
+    """Ctrl-C lands while the driver opens the sweep's run (or records a lost driver): the run is closed KILLED
+    as for a Ctrl-C later on; left RUNNING, the next --resume would record a lost driver that was not lost."""
+    sweep = toy_sweep(tmp_path, "early_ctrl_c")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    start_sweep = tracker.start_sweep
+
+    def pressed_meanwhile(*args, **kwargs):
+        run_id = start_sweep(*args, **kwargs)
+        signal.raise_signal(signal.SIGINT)
+        return run_id
+
+    tracker.start_sweep = pressed_meanwhile
+    with pytest.raises(KeyboardInterrupt):
+        SweepScheduler(load_sweep(sweep), tracker).run()
+    parent, children = sweep_runs(tracker.uri, "early_ctrl_c")
+    assert parent.status == KILLED and children == []
+
+
+def test_workers_lost_in_a_round_cut_short_by_ctrl_c_are_recorded(tmp_path):
+    """Ctrl-C ends a round whose report never comes: the workers Ray restarted in it (stateless ones, and stateful
+    ones the runner recovered) are read from the actor table before the actors go, and recorded."""
+    from orchestrator.scheduler import Attempt
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "cut_short", lost_left=5)
+    state.launched_here = True
+    attempt = Attempt(state, RunnerlessGroup({"relabel": 1}, stateful={"trainer": 1}), phase="running")
+    scheduler._active, scheduler._states = [attempt], [state]
+    scheduler._abort(tracker.find_sweep_run("cut_short", "r").run_id, "interrupted", "Ctrl-C", "")
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0)]
+    assert tracker.trial_run(state.run_id).status == KILLED
 
 
 def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
@@ -784,6 +845,40 @@ def test_stateless_workers_ray_restarted_are_recorded_once_and_spend_the_budget(
     assert state.lost_left == 1  # three restarts and the runner's loss
 
 
+def test_a_stateful_recovery_whose_report_died_with_the_runner_is_recorded_from_rays_table(tmp_path):
+    """The runner reports the workers it recovered with the round's result or error; a runner lost later in the
+    round takes that report with it. When the attempt ends, each stateful restart Ray counted that neither a
+    reported recovery nor the failure itself accounts for is recorded, and spends the budget, once."""
+    from orchestrator.failures import LOST_PROCESS, Failure
+    from orchestrator.scheduler import Attempt
+    from workers.methods import RoleWorkerLost, RoundReport
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "unreported", lost_left=6)
+    group = RunnerlessGroup(stateful={"trainer": 1, "learner": 0})
+    attempt = Attempt(state, group, phase="running", round_index=0)
+    reported = [str(RoleWorkerLost("trainer", "killed"))]
+    scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", reported))
+    assert state.recovered == 1 and state.lost_left == 5
+    group.stateful = {"trainer": 2, "learner": 1}  # both recovered in round 1; then the runner was lost
+    runner_lost = Failure(LOST_PROCESS, "ActorDiedError: the runner", "detail", "sig")
+    assert scheduler._failed(attempt, runner_lost) == "retry"
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0), (3, 1.0)]
+    assert state.lost_left == 2  # three workers and the runner
+    texts = [
+        tracker.download(state.run_id, f"failures/recovery_00{n}_lost_process.txt", tmp_path / str(n)).read_text()
+        for n in (2, 3)
+    ]
+    assert ["role 'trainer' was lost and Ray" in texts[0], "role 'learner' was lost and Ray" in texts[1]] == [1, 1]
+
+    # A loss the failure is about, or one reported before it, is not recorded a second time.
+    attempt = Attempt(state, RunnerlessGroup(stateful={"trainer": 2}), phase="running", round_index=1)
+    trainer_lost = Failure(
+        LOST_PROCESS, "RoleWorkerLost: trainer", "detail", "sig2", recovered=tuple(reported), role="trainer"
+    )
+    assert scheduler._failed(attempt, trainer_lost) == "retry"
+    assert state.recovered == 4 and state.lost_left == 0
+
+
 def test_recoveries_in_place_past_the_budget_stop_the_trial_after_the_round(tmp_path):
     """Ray restarts each worker up to the whole budget, so one round can recover more than is left: the trial
     stops once its round is logged and checkpointed, FAILED with the count, not after a later loss."""
@@ -852,6 +947,23 @@ def test_a_launched_trial_is_this_drivers_to_close(tmp_path, monkeypatch):
     assert not state.launched_here
     attempt = scheduler._launch(state)
     assert state.launched_here and attempt.phase == "placing" and state.run_id is not None
+
+
+def test_a_recovery_whose_file_a_dying_driver_never_wrote_still_numbers_the_next_one(tmp_path):
+    """The metric of recovery 2 is written, the driver dies before its file: the resume numbers on from 3, not
+    from 2 again (which would log the metric's step 2 twice)."""
+    tracker, _, state = started_toy_trial(tmp_path, "half_recorded")
+    tracker.record_recovery(state.run_id, 1, "lost_process", "first")
+    log_text = tracker.client.log_text
+
+    def dies(*args, **kwargs):
+        raise DriverDied()
+
+    tracker.client.log_text = dies
+    with pytest.raises(DriverDied):
+        tracker.record_recovery(state.run_id, 2, "lost_process", "second")
+    tracker.client.log_text = log_text
+    assert tracker.recoveries(state.run_id) == 2
 
 
 def test_a_resumed_trials_recoveries_are_numbered_on(tmp_path, local_ray):

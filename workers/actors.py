@@ -161,9 +161,11 @@ class ProgramRunner:
                 except RoleWorkerLost as lost:
                     if self.recoveries_left <= 0:
                         raise
+                    # Counted once restored: a restore that fails hands this same loss on as the round's error,
+                    # and it must not also be reported as recovered.
+                    self._restore_last_round()
                     self.recoveries_left -= 1
                     recovered.append(str(lost))
-                    self._restore_last_round()
         except Exception as error:
             if recovered:
                 setattr(error, RECOVERED_ATTRIBUTE, list(recovered))

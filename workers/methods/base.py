@@ -16,6 +16,7 @@ Nothing here imports Ray or MLflow.
 
 from __future__ import annotations
 
+import re
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
@@ -79,6 +80,9 @@ class RoleSpec(NamedTuple):
     calls refuses every other call (RoleWorkerLost) until this one has run, so it never works on from nothing."""
 
 
+_LOST_ROLE = re.compile(r"a worker of role '([^']+)' was lost: ")
+
+
 class RoleWorkerLost(RuntimeError):
     """A role's worker process died during a call; role groups whose workers live in other processes raise it.
 
@@ -90,6 +94,12 @@ class RoleWorkerLost(RuntimeError):
         super().__init__(f"a worker of role {role!r} was lost: {cause}")
         self.role = role
         self.cause = cause
+
+    @staticmethod
+    def role_in(message: str) -> str | None:
+        """The role a RoleWorkerLost's message names (as the runner reports a recovery), None for another text."""
+        found = _LOST_ROLE.match(message)
+        return found[1] if found else None
 
     def __reduce__(self):  # travels between processes inside Ray's task errors, with what the runner noted on it
         return type(self), (self.role, self.cause), self.__dict__
