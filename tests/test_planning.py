@@ -43,10 +43,17 @@ def test_colored_noise_release_2_1_doubles_the_constant_term():
     new, old = (colored_noise(3.0, (40000, 30), np.random.default_rng(1), release) for release in ("2.1", "1.1"))
     assert new.mean(axis=1).var() == pytest.approx(2 * old.mean(axis=1).var(), rel=0.05)
     assert old.var(axis=0).mean() == pytest.approx(1.21, rel=0.04)
-    white = colored_noise(0.0, (40000, 30), np.random.default_rng(1), "1.1")  # 1.1 is not quite white at beta 0
-    assert white.mean(axis=1).var() == pytest.approx(0.5 / 30, rel=0.1)
     with pytest.raises(ValueError, match="release"):
         colored_noise(3.0, (2, 30), np.random.default_rng(1), "2.2")
+
+
+@pytest.mark.parametrize("release", ["1.1", "2.1"])
+def test_beta_zero_is_white_noise_in_either_release(release):
+    """Eq. 10-13 with beta = 0: a flat spectrum, i.e. independent steps; through release 1.1's transform each
+    sequence's mean would have half the variance (0.5/30) and steps two apart a covariance of -0.034."""
+    white = colored_noise(0.0, (40000, 30), np.random.default_rng(1), release)
+    assert white.mean(axis=1).var() == pytest.approx(1 / 30, rel=0.05)
+    assert abs(np.mean(white[:, :-2] * white[:, 2:])) < 0.005
 
 
 def test_the_planner_samples_with_the_configured_noise_release():

@@ -40,10 +40,10 @@ def colored_noise(
     if beta < 0:
         raise ValueError(f"colored-noise beta must be >= 0, got {beta}")
     length = shape[-1]
-    if length < 2 or (beta == 0 and release == "2.1"):
-        # With every coefficient at the same variance (2.1), beta = 0 is exactly white noise. Release 1.1's
-        # undoubled DC and Nyquist terms make even its beta = 0 noise slightly non-white; it goes through the
-        # transform below.
+    if length < 2 or beta == 0:
+        # beta = 0 is white noise (eq. 10-13, Fig. 4), and the authors' code drew it with a plain standard normal
+        # rather than the package. Through the transform, release 1.1's undoubled DC and Nyquist terms would make
+        # it anti-persistent: each sequence's constant offset at half the variance, a negative lag-2 covariance.
         return rng.standard_normal(shape)
     frequencies = np.fft.rfftfreq(length)
     frequencies[0] = frequencies[1]  # the DC term gets the lowest frequency's amplitude
