@@ -128,6 +128,9 @@ class Group(NamedTuple):
     implied: frozenset[str] = frozenset()
     """Setting keys the variant's name stands for (one value across all its configurations): left out of
     :meth:`name`, kept in ``setting`` and the CSV."""
+    missing: int = 0
+    """Trials without a finite value of the metric (e.g. a seed that never reached the threshold): the mean and
+    interval are of the others, so the group is neither tested nor ranked best."""
 
     @property
     def n(self) -> int:
@@ -170,7 +173,12 @@ class Summary(NamedTuple):
 
 
 def _rate_episodes(trial: TrialResult, metric: str, summary_key: str) -> int | None:
-    """How many episodes the trial's figure is a success rate over; None when it is not a rate of episodes."""
+    """How many independent episodes the trial's figure is a success rate over; None when it is not a rate of
+    independent episodes. The episodes of one trained policy or model (APEX, MBRL, neural APSP) share it, so
+    pooling them over seeds would count one draw of the method many times: the seed is their unit."""
+    program = METHODS.get(trial.method)
+    if program is None or not program.independent_episodes:
+        return None
     logged = trial.values.get(summary_key + EPISODES_SUFFIX)
     if logged is not None and math.isfinite(logged) and logged >= 1:
         return int(logged)
@@ -217,6 +225,7 @@ def _with_implied_settings(groups: list[Group]) -> list[Group]:
 
 def _group(task, method, labels, variant, setting, members, metric, summary_key, references) -> Group:
     values = np.array([m.values.get(summary_key, math.nan) for m in members], dtype=float)
+    missing = int(np.sum(~np.isfinite(values)))
     values = values[np.isfinite(values)]
     sem = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else 0.0
     reference = find(references, task, method, members[0].params, metric)
@@ -240,11 +249,18 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
     differences = reference.differences(members[0].params) if reference is not None else []
     if differences:  # a reduced run: the published figure stands beside it, untested (e.g. Table 9 at n = 2)
         comparison = statistics.Comparison("untested", "not tested: ran " + ", ".join(differences), math.nan, None)
+    if missing and reference is not None:
+        # A run without the figure is most often censored, not missing (a seed that never reached the threshold
+        # has no episodes_to_threshold): the mean of the others would favour the configuration that failed more.
+        comparison = statistics.Comparison(
+            "untested", f"not tested: {missing} of {len(members)} runs have no value", math.nan, None
+        )
     # The IQM trims the best and worst quarter of runs; of one success flag per run it would trim outcomes, not
     # outliers, and say nothing the rate does not.
     flags = successes is not None and bool(np.isin(values, (0.0, 1.0)).all())
     return Group(task, method, dict(labels), variant or None, setting, members, mean, sem, interval,
-                 None if flags else statistics.iqm_interval(values), successes, reference, comparison)  # fmt: skip
+                 None if flags else statistics.iqm_interval(values), successes, reference, comparison,
+                 missing=missing)  # fmt: skip
 
 
 def summarize(
@@ -292,7 +308,7 @@ def summarize(
     if pairing is not None:
         groups = [group._replace(paired=_paired(group, groups, pairing, summary_key, metric, episodes))
                   for group in groups]  # fmt: skip
-    finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean)]
+    finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean) and not g.missing]
     best, tied = None, ()
     if finite:
         pick = max if mode == "max" else min
@@ -417,6 +433,8 @@ def _estimate_text(group: Group, metric: str) -> str:
     text = _number(group.mean, metric)
     if group.successes:
         text += f" ({group.successes[0]}/{group.successes[1]})"
+    if group.missing:
+        text += f" (of {group.n - group.missing}; {group.missing} without a value)"
     if math.isfinite(low):
         text += f" [{_number(low, metric)}, {_number(high, metric)}]"
     return text
@@ -468,7 +486,7 @@ def to_csv(summary: Summary) -> str:
     setting_keys = sorted({k for g in summary.groups for k in g.setting})
     m = summary.metric
     writer.writerow(
-        ["task", "method", *label_keys, "variant", *setting_keys, "trials", f"{m}_mean", f"{m}_sem",
+        ["task", "method", *label_keys, "variant", *setting_keys, "trials", "trials_without_value", f"{m}_mean", f"{m}_sem",
          f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes", "episodes",
          "seconds_per_step", "published", "published_spread", "published_runs", "published_source", "verdict",
          "test", "p_value", "runs_to_settle", "best", "paired_baseline", "paired_pairs", f"paired_{m}_difference",
@@ -482,7 +500,7 @@ def to_csv(summary: Summary) -> str:
         r, c = g.reference, g.comparison
         writer.writerow(
             [g.task, g.method, *[g.labels.get(k, "") for k in label_keys], g.variant or "",
-             *[g.setting.get(k, "") for k in setting_keys], g.n, cell(g.mean), cell(g.sem),
+             *[g.setting.get(k, "") for k in setting_keys], g.n, g.missing, cell(g.mean), cell(g.sem),
              cell(g.interval.low), cell(g.interval.high),
              cell(g.iqm.estimate if g.iqm else None), cell(g.iqm.low if g.iqm else None),
              cell(g.iqm.high if g.iqm else None),

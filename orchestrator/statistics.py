@@ -18,9 +18,15 @@ effects.
   number of runs Fisher's exact test of the two samples (the published rate
   is itself an estimate: 9 of 10 against 50 of 50 is p = 0.17, not 0); an
   exact binomial test against the rate taken as exact when the run count is
-  not published; for returns Welch's t-test
+  not published (untested for a published 0 or 1, which no failure or
+  success could then meet); success rates pool episodes only where they are
+  independent draws (ground-truth MPC), else the seed is the unit and its
+  rates are means; for returns Welch's t-test
   against the published mean, spread and run count (a one-sample t-test when
-  the reference gives no spread, or one run). Tests are two-sided at the 5%
+  the reference gives no spread, or one run, or no run count: the test's
+  name then says the spread went unused). A configuration with runs that
+  have no value (a seed that never reached a threshold) is not tested, nor
+  ranked best: the mean of the others would be survivors'. Tests are two-sided at the 5%
   level: ``below`` or ``above`` (the side of the observed difference) when
   the difference is significant, ``consistent`` when it is not, and
   ``untested`` when no test is defined (one run, or constant runs against a
@@ -160,6 +166,11 @@ def compare_rate(successes: int, trials: int, published: float, published_runs: 
         test = "Fisher exact"
         published = theirs / published_runs
     else:
+        if published in (0.0, 1.0):
+            # Taken as exact, a published 100% makes a single failure impossible (p = 0); it was itself estimated
+            # from runs the reference does not count.
+            return Comparison("untested", f"not tested: a published rate of {published:g} without its run count",
+                              math.nan, None)  # fmt: skip
         p_value = float(stats.binomtest(successes, trials, published).pvalue)
         test = "exact binomial"
     verdict = _verdict(p_value, observed < published)
@@ -208,7 +219,11 @@ def compare_mean(values: np.ndarray, published: float, spread: float | None, spr
         test = "Welch t-test"
     else:
         result = stats.ttest_1samp(values, published)
+        # Without a run count a published spread says nothing about the published mean's own error (Table 9):
+        # the mean is taken as exact, and the test's name says the spread went unused.
         test = "one-sample t-test"
+        if spread is not None:
+            test += f", published spread unused ({'no run count' if runs is None else 'one run'})"
     p_value = float(result.pvalue)
     verdict = _verdict(p_value, mean < published)
     if verdict != "consistent" or mean == published:

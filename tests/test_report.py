@@ -83,7 +83,7 @@ def test_a_reference_of_one_run_or_constant_runs_are_tested_only_where_a_test_is
     """One published run has no spread to test against: its mean is taken as exact (a one-sample test), not a nan
     p-value turned into a verdict; constant own runs against a mean without a spread are not tested."""
     single = statistics.compare_mean(np.array([9.0, 10.0, 11.0, 12.0]), 8.0, 1.0, "std", 1)
-    assert single.test == "one-sample t-test" and math.isfinite(single.p_value)
+    assert single.test == "one-sample t-test, published spread unused (one run)" and math.isfinite(single.p_value)
     constant = statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", None)
     assert constant.test == "too few runs to test" and constant.verdict == "untested"
     assert statistics.compare_mean(np.array([5.0]), 3.0, 1.0, "std", 10).verdict == "untested"
@@ -97,8 +97,16 @@ def test_a_published_rate_over_known_runs_is_tested_as_a_second_sample():
     fisher = statistics.compare_rate(9, 10, 1.0, 50)
     assert fisher.verdict == "consistent" and fisher.test == "Fisher exact"
     assert fisher.p_value == pytest.approx(0.167, abs=0.002)
-    assert statistics.compare_rate(9, 10, 1.0).verdict == "below"
+    assert statistics.compare_rate(5, 40, 0.81).verdict == "below"  # the rate taken as exact
     assert statistics.compare_rate(5, 40, 0.81, 100).verdict == "below"
+
+
+@pytest.mark.parametrize("published", [0.0, 1.0])
+def test_a_published_rate_of_zero_or_one_without_runs_is_not_tested(published):
+    """Taken as exact, a published 100% makes one failure in 50 impossible (p = 0, "below"); that rate was itself
+    counted over runs the reference does not give."""
+    comparison = statistics.compare_rate(1 if published == 0.0 else 49, 50, published)
+    assert comparison.verdict == "untested" and "without its run count" in comparison.test
 
 
 def test_episodes_to_settle_against_published_runs_reach_80_percent_power_or_are_not_named():
@@ -132,22 +140,60 @@ def test_the_interval_of_a_few_runs_mean_covers_the_true_mean_95_percent_of_the_
     assert two.low == pytest.approx(2.0 - 12.706, abs=1e-3)  # t(0.975, 1) * sem 1
 
 
-def test_success_figures_logged_with_their_episodes_are_rates_of_episodes():
-    """APEX's and mbrl's success summaries say how many episodes they average (``<key>_episodes``): 0.6, 0.4 and
-    0.2 over 5 episodes each are 6 of 15, not three trials' rates rounded to 1 of 3; without the count the figure
-    stays a mean over seeds."""
+def test_success_figures_logged_with_their_episodes_are_rates_of_independent_episodes_only():
+    """Ground-truth MPC's episodes are independent draws: 0.6, 0.4 and 0.2 over 5 episodes each are 6 of 15, not
+    three trials' rates rounded to 1 of 3. An mbrl (or APEX, neural APSP) trial's episodes share one trained model:
+    the seed is the unit, so its rates stay a mean over seeds however many episodes each counts."""
     from orchestrator.tracking import TrialRun
 
-    def run(seed, rate, episodes=None):
-        params = {"method": "mbrl", "task": "bridge_maze", "seed": str(seed)}
-        metrics = {"final_success_rate": rate} | ({"final_success_rate_episodes": episodes} if episodes else {})
+    def run(method, key, seed, rate, episodes=None):
+        params = {"method": method, "task": "bridge_maze", "seed": str(seed)}
+        metrics = {key: rate} | ({f"{key}_episodes": episodes} if episodes else {})
         return TrialRun(f"r{seed}", f"k{seed}", FINISHED, "name", params, {}, metrics)
 
-    counted = report.summarize([run(0, 0.6, 5), run(1, 0.4, 5), run(2, 0.2, 5)], "success", references=[])
+    rates = [(0, 0.6), (1, 0.4), (2, 0.2)]
+    counted = report.summarize([run("mpc", "success_rate", s, r, 5) for s, r in rates], "success", references=[])
     (group,) = counted.groups
     assert group.successes == (6, 15) and group.mean == pytest.approx(0.4)
-    (uncounted,) = report.summarize([run(0, 0.6), run(1, 0.4), run(2, 0.2)], "success", references=[]).groups
-    assert uncounted.successes is None and uncounted.mean == pytest.approx(0.4)
+    learned = [run("mbrl", "final_success_rate", s, r, 5) for s, r in rates]
+    (per_seed,) = report.summarize(learned, "success", references=[]).groups
+    assert per_seed.successes is None and per_seed.mean == pytest.approx(0.4)
+    assert per_seed.interval.high - per_seed.interval.low > 0.5  # a t interval over 3 seeds, not 15 episodes'
+
+
+def test_apex_rates_are_tested_against_table_9_by_seed_not_by_pooled_episode():
+    """Three seeds at 0.60, 0.65, 0.70 over 125 episodes each against Table 9's 0.77: pooled as 375 independent
+    episodes they would be "below" at p = 1.5e-7; by seed the one-sample test gives p = 0.053."""
+    from orchestrator.tracking import TrialRun
+
+    params = {"method": "apex", "task": "fetch_pick_place_sparse"}
+    runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", params | {"seed": str(s)}, {},
+                     {"final_policy_success": rate, "final_policy_success_episodes": 125})
+            for s, rate in enumerate([0.60, 0.65, 0.70])]  # fmt: skip
+    reference = Reference(task="fetch_pick_place_sparse", metric="policy_success", value=0.77, source="t", method="apex")
+    (group,) = report.summarize(runs, "policy_success", references=[reference]).groups
+    assert group.successes is None and group.comparison.test == "one-sample t-test"
+    assert group.comparison.verdict == "consistent" and group.comparison.p_value == pytest.approx(0.053, abs=0.002)
+
+
+def test_seeds_without_a_value_leave_the_configuration_untested_and_unranked():
+    """Rollouts to the threshold of 10 Ours+HER seeds, 7 of which never got there: the 3 that did (9,000-9,400) are
+    not "below" section 6.6.2's 11k, and their configuration does not outrank one whose every seed crossed."""
+    from orchestrator.tracking import TrialRun
+
+    def run(reward, seed, value):
+        params = {"method": "napsp", "task": "fetch_pick_place", "reward": reward, "seed": str(seed)}
+        return TrialRun(f"{reward}{seed}", f"k{reward}{seed}", FINISHED, "n", params, {"reward": reward},
+                        {"episodes_to_threshold": value})  # fmt: skip
+
+    ours = [run("ours_her", s, v) for s, v in enumerate([9000, 9200, 9400] + [math.nan] * 7)]
+    ddl = [run("ddl_her", s, 15000 + 100 * s) for s in range(10)]
+    summary = report.summarize(ours + ddl, "episodes_to_threshold", "min", load_references(THESIS))
+    groups = {g.trials[0].params["reward"]: g for g in summary.groups}
+    assert groups["ours_her"].missing == 7 and groups["ours_her"].n == 10
+    assert groups["ours_her"].comparison.verdict == "untested" and "7 of 10" in groups["ours_her"].comparison.test
+    assert summary.groups[summary.best] is groups["ddl_her"]  # its mean is higher, but every seed has one
+    assert "(of 3; 7 without a value)" in report.format_table(summary)
 
 
 def test_an_untested_comparison_is_not_written_as_consistent():
@@ -191,7 +237,7 @@ def test_a_reduced_apex_run_stands_beside_table_9_untested_with_what_it_changed(
 
     halfcheetah = summary_of("apex_halfcheetah.yaml", "evaluation_return", [3000.0, 3500.0, 3200.0])
     tested = halfcheetah.groups[0].comparison
-    assert tested.verdict == "below" and tested.test == "one-sample t-test"
+    assert tested.verdict == "below" and tested.test == "one-sample t-test, published spread unused (no run count)"
 
 
 def test_pairs_that_all_differ_by_the_same_amount_get_the_sign_test():

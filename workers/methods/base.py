@@ -255,6 +255,10 @@ class Program(ABC):
         """Which of a finished trial's plot artifacts (paths under ``plots/``) a report copies next to its own
         figures, so that one folder shows each trial's pictures; none by default."""
         return []
+    independent_episodes: ClassVar[bool] = False
+    """Whether a trial's episodes are independent draws of the method's outcome (their own seeds, nothing
+    learned between them), so that a success rate pools over all episodes of all seeds. Episodes of one
+    trained policy or model share it: the seed is then the unit, and rates are averaged per seed."""
     paired_episodes: ClassVar[bool] = False
     """Whether episode i of a trial starts alike (state, layout, random streams) in every configuration run with
     the trial's seed, and logs each headline metric per episode at step i: reports then compare a variant with

@@ -81,6 +81,7 @@ class MpcProgram(Program):
     metrics = {"episode_return": "mean_return", "success": "success_rate", "box_drops": "mean_box_drops"}
     label_paths = {"algorithm": ("algorithm", "planner.algorithm"), "budget": ("planner.budget",)}
     curves = ("step/return",)
+    independent_episodes = True  # each episode plans on ground truth from its own seed; nothing carries over
     curve_step = "environment step"
     # An episode's start state and the seeds of its noise and planner are functions of (trial seed, episode
     # index) alone (episode_seed), so a variant and its baseline meet the same layouts.
