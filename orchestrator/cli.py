@@ -519,6 +519,25 @@ def _recorded_sweep(tracker, run_id: str) -> dict:
     return recorded if isinstance(recorded, dict) else {}
 
 
+def _reloaded_sweep(tracker, run_id: str):
+    """The sweep file recorded on a sweep's run, loaded again (trials keyed by this code, its reference file
+    read); None when it does not load here, e.g. its reference file lies beside a sweep file that is not."""
+    import tempfile
+
+    from orchestrator.sweep import SweepError, load_sweep
+
+    text = tracker.recorded_sweep(run_id)
+    if not text:
+        return None
+    with tempfile.TemporaryDirectory() as directory:
+        path = Path(directory) / "sweep.yaml"
+        path.write_text(text)
+        try:
+            return load_sweep(path)
+        except (SweepError, OSError):
+            return None
+
+
 def _recorded_metric(recorded: dict) -> tuple[str, str] | None:
     """(metric name, mode) of a recorded sweep file, if it names one."""
     metric = recorded.get("metric")
@@ -562,6 +581,8 @@ def cmd_report(args) -> int:
         )
         return 1
     planned = None
+    if loaded is None:  # by name: the sweep recorded on its run, planned by this code as `report FILE` would
+        loaded = _reloaded_sweep(tracker, parent.run_id)
     if loaded is not None:
         metric, mode, references = loaded.sweep.metric_name(), loaded.sweep.metric.mode, loaded.references
         planned = {trial.key for trial in loaded.trials}
@@ -574,6 +595,13 @@ def cmd_report(args) -> int:
         metric, mode = _recorded_metric(recorded) or (next(iter(METHODS[method].metrics)), "max")
         pairing = _recorded_pairing(recorded)
         references = load_references(THESIS)
+        if recorded.get("reference"):
+            print(
+                f"icemlab: the sweep compared with {recorded['reference']}, which a report by name cannot read "
+                "(the recorded sweep no longer loads here); the thesis's tables stand in. Report the sweep file "
+                "to use its reference.",
+                file=sys.stderr,
+            )
     program = METHODS.get(report.result_from_run(runs[0]).method)
     episodes = episode_histories(tracker, runs, program, metric, pairing)
     summary = report.summarize(runs, metric, mode, references, planned, pairing, episodes)

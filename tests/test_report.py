@@ -748,6 +748,41 @@ def store_paired_success_sweep(tmp_path, name: str, flags: dict[str, dict[int, l
     return result.stdout, rows
 
 
+def store_rerun_seed(tmp_path, text: str, name: str) -> None:
+    """A finished sweep (recorded ``text``) whose seed 0 ran twice: under a key the code no longer plans (-9), and
+    under the current plan's key (-4), as a resume after a change of the trial's resolution leaves it."""
+    sweep_file = tmp_path / f"{name}.yaml"
+    sweep_file.write_text(text)
+    (trial,) = load_sweep(sweep_file).trials
+    sweep_file.unlink()  # reported by name: only the store knows the sweep
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep(name, name, "hash", text, {}, "dev")
+    for key, value in (("stale-key", -9.0), (trial.key, -4.0)):
+        params = {"method": "mpc", "task": "point_reach", "seed": 0, "planner.algorithm": "icem", "planner.budget": 100}
+        tags = {"method": "mpc", "task": "point_reach", "algorithm": "icem", "budget": "100"}
+        run_id = tracker.start_trial(parent, key, key, params, tags)
+        tracker.end_trial(run_id, FINISHED, {"mean_return": value})
+    tracker.end_sweep(parent, FINISHED, {})
+
+
+def test_a_report_by_name_counts_each_seed_once_as_the_recorded_sweep_plans_it(tmp_path):
+    """``icemlab report NAME`` plans the recorded sweep again, as ``report FILE`` and the sweep's own summary do:
+    a seed run again under a new key counts once, not twice."""
+    store_rerun_seed(tmp_path, "name: byname\ntask: point_reach\nseeds: [0]\n", "byname")
+    result = cli("report", "byname", "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    (row,) = csv.DictReader(io.StringIO((tmp_path / "out" / "summary.csv").read_text()))
+    assert row["trials"] == "1" and float(row["episode_return_mean"]) == -4.0
+
+
+def test_a_report_by_name_says_when_the_sweeps_own_reference_cannot_be_read(tmp_path):
+    (tmp_path / "paper.yaml").write_text(REFERENCE)
+    store_rerun_seed(tmp_path, "name: own_ref\ntask: point_reach\nseeds: [0]\nreference: paper.yaml\n", "own_ref")
+    result = cli("report", "own_ref", "--output", str(tmp_path / "out"), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "compared with paper.yaml, which a report by name cannot read" in result.stderr
+
+
 def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
     """``icemlab report NAME`` reads the baseline from the sweep file recorded when it ran."""
     flags = {"full": [1, 1, 1, 0], "ablated": [0, 1, 0, 0]}
