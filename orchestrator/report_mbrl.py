@@ -77,9 +77,39 @@ def frozen_points(trials: Iterable[Any]) -> list[FrozenPoint]:
     return points
 
 
+def _labels(group: Any) -> list[str]:
+    """A group's labels as its method writes them (planner algorithm and budget, model preset): the report keeps
+    them out of the swept settings, so lines named by settings alone would join groups that differ there."""
+    from workers.methods import METHODS
+
+    program = METHODS.get(group.method)
+    return program.label_text(group.labels) if program and group.labels else list(group.labels.values())
+
+
+def _configuration(group: Any) -> list[str]:
+    """What names a group beside its swept settings: its labels and its variant."""
+    return [*_labels(group), group.variant or ""]
+
+
 def _label(group: Any) -> str:
-    parts = [group.variant or "", *[f"{k}={v}" for k, v in group.setting.items()]]
+    parts = [*_configuration(group), *[f"{k}={v}" for k, v in group.setting.items()]]
     return " ".join(p for p in parts if p) or group.task
+
+
+def _rate_error(point: FrozenPoint, key: str) -> tuple[float, float]:
+    """(below, above) the row's mean rate: +- sem over seeds, or with one seed the Wilson 95% interval over that
+    trial's frozen episodes (a rate over 25 episodes has an error even when no second seed shows it)."""
+    mean, sem, n = point.values[key]
+    episodes = point.mean("episodes")
+    if n == 1 and episodes and episodes >= 1:
+        interval = statistics.rate_interval(int(round(mean * episodes)), int(episodes))
+        return mean - interval.low, interval.high - mean
+    return sem, sem
+
+
+def _bars(points: Sequence[FrozenPoint], key: str) -> list[list[float]]:
+    errors = [_rate_error(p, key) for p in points]
+    return [[below for below, _ in errors], [above for _, above in errors]]
 
 
 def success_figure(summary: Any):
@@ -97,7 +127,7 @@ def success_figure(summary: Any):
             line = success_axis.errorbar(
                 [p.aleatoric_weight for p in razer],
                 [p.values["success_rate"][0] for p in razer],
-                yerr=[p.values["success_rate"][1] for p in razer],
+                yerr=_bars(razer, "success_rate"),
                 marker="o", capsize=3, label=f"RAZER {label}".strip(),
             )  # fmt: skip
             color = line[0].get_color()
@@ -110,12 +140,13 @@ def success_figure(summary: Any):
                 )  # fmt: skip
         for p in points:
             if p.pets and "success_rate" in p.values:
-                mean, sem, n = p.values["success_rate"]
+                mean, _, n = p.values["success_rate"]
                 success_axis.axhline(
                     mean, linestyle="--", color=color or "tab:red", label=f"PETS {label} (n={n})".strip()
                 )
-                if sem:
-                    success_axis.axhspan(mean - sem, mean + sem, color=color or "tab:red", alpha=0.1)
+                below, above = _rate_error(p, "success_rate")
+                if below or above:
+                    success_axis.axhspan(mean - below, mean + above, color=color or "tab:red", alpha=0.1)
                 if "mean_return" in p.values:
                     return_axis.axhline(p.values["mean_return"][0], linestyle="--", color=color or "tab:red")
     for axis, name in ((success_axis, "success rate"), (return_axis, "mean return")):
@@ -123,8 +154,8 @@ def success_figure(summary: Any):
         axis.set_ylabel(name)
         axis.grid(alpha=0.3)
     success_axis.set_ylim(-0.02, 1.02)
-    success_axis.set_title("frozen model: success, +- sem over seeds (thesis Fig. 19a: PETS 0.58, RAZER up to 0.96)",
-                           fontsize=9)  # fmt: skip
+    success_axis.set_title("frozen model: success, +- sem over seeds; one seed: Wilson 95% over its episodes\n"
+                           "(thesis Fig. 19a: PETS 0.58, RAZER up to 0.96)", fontsize=9)  # fmt: skip
     return_axis.set_title("frozen model: return, +- sem over seeds (dashed: PETS)", fontsize=9)
     success_axis.legend(fontsize=7)
     figure.tight_layout()
@@ -177,20 +208,23 @@ def drop_rate_figure(summary: Any, option: str | None = None):
             if key is None:
                 continue
             key_used = key_used or key
-            mean, sem, _ = point.values[key]
+            mean = point.values[key][0]
+            below, above = _rate_error(point, key)
             rest = " ".join(f"{k}={v}" for k, v in group.setting.items() if k != option)
-            lines[" ".join(filter(None, [point.row, group.variant or "", rest]))].append((x, mean, sem))
+            lines[" ".join(filter(None, [point.row, *_configuration(group), rest]))].append((x, mean, below, above))
     if not lines:
         return None
     figure, axis = plt.subplots(figsize=(6, 4))
     for name, values in sorted(lines.items()):
         values.sort()
-        axis.errorbar([v[0] for v in values], [v[1] for v in values], yerr=[v[2] for v in values],
-                      marker="o", capsize=3, label=name)  # fmt: skip
+        axis.errorbar([v[0] for v in values], [v[1] for v in values],
+                      yerr=[[v[2] for v in values], [v[3] for v in values]], marker="o", capsize=3,
+                      label=name)  # fmt: skip
     axis.set_xlabel(option.removeprefix("task_options."))
     axis.set_ylabel(key_used.replace("_", " "))
     axis.set_ylim(-0.02, 1.02)
-    return _finished(figure, axis, "frozen rows: failure rate against the noise, +- sem over seeds (thesis Fig. 19b: RAZER < 0.2)")
+    return _finished(figure, axis, "frozen rows: failure rate against the noise, +- sem over seeds; one seed: "
+                     "Wilson 95% (thesis Fig. 19b: RAZER < 0.2)")  # fmt: skip
 
 
 def coverage_figure(summary: Any):
@@ -238,7 +272,8 @@ def penalty_figure(summary: Any):
     for group in summary.groups:
         if PENALTY_SETTING in group.setting:
             rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k != PENALTY_SETTING)
-            lines[" ".join(filter(None, [group.task, _particles(group), rest]))].append(group)
+            # The variant is left out: in these sweeps it names the penalty, the x-axis.
+            lines[" ".join(filter(None, [group.task, *_labels(group), _particles(group), rest]))].append(group)
     points = {name: [(g.setting[PENALTY_SETTING], g) for g in members] for name, members in lines.items()}
     return _group_lines_figure(points, "aleatoric penalty w_A (0: PETS)", summary.metric,
                                "against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)")  # fmt: skip
@@ -277,7 +312,7 @@ def noise_figure(summary: Any):
         weight = group.setting[PENALTY_SETTING]
         rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k not in (PENALTY_SETTING, option))
         name = "PETS" if weight == 0 else f"RAZER w_A={weight}"
-        lines[" ".join(filter(None, [name, _particles(group), rest]))].append((x, group))
+        lines[" ".join(filter(None, [name, *_labels(group), _particles(group), rest]))].append((x, group))
     return _group_lines_figure(lines, option.removeprefix("task_options."), summary.metric,
                                "against the noise (thesis Fig. 19b: RAZER's drop rate < 0.2)")  # fmt: skip
 

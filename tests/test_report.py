@@ -613,6 +613,45 @@ def test_noisy_fetch_drop_rates_are_drawn_against_the_aleatoric_penalty(tmp_path
     assert tmp_path / "penalty.png" in report.write_files(summary, tmp_path)
 
 
+def test_the_penalty_figure_draws_a_line_per_planner_budget():
+    """The budget is a label, not a swept setting: two budgets' groups on one line would zigzag between them."""
+    from orchestrator import report_mbrl
+    from orchestrator.tracking import TAG_OVERRIDE, TrialRun
+
+    def run(weight: float, budget: int, drops: float):
+        tags = {"algorithm": "icem", "budget": str(budget), f"{TAG_OVERRIDE}planner.budget": json.dumps(budget),
+                f"{TAG_OVERRIDE}ensemble.aleatoric_weight": json.dumps(weight)}  # fmt: skip
+        params = {"method": "mpc", "task": "noisy_fetch_pick_place", "seed": "0", "episodes": "20",
+                  "planner.algorithm": "icem", "planner.budget": str(budget)}  # fmt: skip
+        return TrialRun(f"{weight}-{budget}", "key", FINISHED, "name", params, tags, {"mean_box_drops": drops})
+
+    runs = [run(0.0, 50, 0.3), run(0.5, 50, 0.2), run(0.0, 100, 0.25), run(0.5, 100, 0.1)]
+    figure = report_mbrl.penalty_figure(report.summarize(runs, "box_drops", mode="min", references=[]))
+    lines = {container.get_label(): container.lines[0] for container in figure.axes[0].containers}
+    assert sorted(lines) == ["noisy_fetch_pick_place icem b100", "noisy_fetch_pick_place icem b50"]
+    assert lines["noisy_fetch_pick_place icem b50"].get_xdata().tolist() == [0.0, 0.5]
+
+
+def test_a_frozen_row_of_one_seed_has_its_episodes_wilson_interval_not_a_zero_bar():
+    """14 of 25 frozen episodes of one trial: no second seed gives a spread, but the rate has one (Wilson
+    0.37-0.73); with two seeds the bar is the sem over them."""
+    from orchestrator import report_mbrl
+    from orchestrator.tracking import TrialRun
+
+    def trial(seed, rate):
+        metrics = {"frozen/razer_wA_0.1/success_rate": rate, "frozen/razer_wA_0.1/episodes": 25.0,
+                   "frozen/razer_wA_0.1/aleatoric_weight": 0.1}  # fmt: skip
+        return TrialRun(f"r{seed}", f"k{seed}", FINISHED, "n", {"method": "mbrl", "seed": str(seed)}, {}, metrics)
+
+    (point,) = report_mbrl.frozen_points(report.summarize([trial(0, 0.56)], "success", references=[]).groups[0].trials)
+    below, above = report_mbrl._rate_error(point, "success_rate")
+    assert (0.56 - below, 0.56 + above) == (pytest.approx(0.371, abs=0.002), pytest.approx(0.732, abs=0.002))
+    (two,) = report_mbrl.frozen_points(
+        report.summarize([trial(0, 0.56), trial(1, 0.64)], "success", references=[]).groups[0].trials
+    )
+    assert report_mbrl._rate_error(two, "success_rate") == (pytest.approx(0.04), pytest.approx(0.04))
+
+
 def test_noisy_fetch_drop_rates_are_drawn_against_the_noise_one_line_per_penalty(tmp_path):
     """Fig. 19b as its caption reads: a fixed w_A per line, the noise on the x-axis. Rows that ran the default
     noise (no swept setting says it) are placed by their logged settings."""
