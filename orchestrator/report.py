@@ -223,13 +223,26 @@ def _with_implied_settings(groups: list[Group]) -> list[Group]:
     return [g._replace(implied=implied.get((g.task, g.method, g.variant), frozenset())) for g in groups]
 
 
+RUN_ONLY_PARAMS = frozenset({"seed", "resources.threads_per_worker", "resources.simulation_workers"})
+"""Params that say how a trial ran, not what it ran: they may differ within one configuration."""
+
+
+def _settings_that_differ(members: list[TrialResult]) -> list[str]:
+    """The logged settings in which a configuration's runs differ (the seed and run-only params aside)."""
+    keys = {key for m in members for key in m.params} - RUN_ONLY_PARAMS
+    return sorted(key for key in keys if len({m.params.get(key) for m in members}) > 1)
+
+
 def _group(task, method, labels, variant, setting, members, metric, summary_key, references) -> Group:
     values = np.array([m.values.get(summary_key, math.nan) for m in members], dtype=float)
     missing = int(np.sum(~np.isfinite(values)))
     values = values[np.isfinite(values)]
     sem = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else 0.0
-    reference = find(references, task, method, members[0].params, metric)
-    if reference is not None and "planner.algorithm" in reference.match and ablated_switches(task, members[0].params):
+    # The first run that has one: a group mixed by an edited sweep file is shown beside it whichever run comes first
+    # (and not tested, below).
+    found = ((m, find(references, task, method, m.params, metric)) for m in members)
+    first, reference = next(((m, r) for m, r in found if r is not None), (members[0], None))
+    if reference is not None and "planner.algorithm" in reference.match and ablated_switches(task, first.params):
         reference = None
     successes = None
     episodes = [_rate_episodes(m, metric, summary_key) for m in members
@@ -246,9 +259,16 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
         if reference is not None and len(values):
             comparison = statistics.compare_mean(values, reference.value, reference.spread, reference.spread_kind,
                                                  reference.runs)  # fmt: skip
-    differences = reference.differences(members[0].params) if reference is not None else []
+    differences = reference.differences(first.params) if reference is not None else []
     if differences:  # a reduced run: the published figure stands beside it, untested (e.g. Table 9 at n = 2)
         comparison = statistics.Comparison("untested", "not tested: ran " + ", ".join(differences), math.nan, None)
+    mixed = _settings_that_differ(members)
+    if mixed and reference is not None:
+        # Runs of one configuration that ran different settings: a sweep file edited between sessions (a base
+        # value changed) whose earlier run of a seed is still the seed's only finished one.
+        comparison = statistics.Comparison(
+            "untested", "not tested: its runs differ in " + ", ".join(mixed), math.nan, None
+        )
     if missing and reference is not None:
         # A run without the figure is most often censored, not missing (a seed that never reached the threshold
         # has no episodes_to_threshold): the mean of the others would favour the configuration that failed more.

@@ -613,6 +613,25 @@ def test_noisy_fetch_drop_rates_are_drawn_against_the_aleatoric_penalty(tmp_path
     assert tmp_path / "penalty.png" in report.write_files(summary, tmp_path)
 
 
+def test_a_configuration_whose_runs_ran_different_settings_is_not_tested():
+    """A sweep edited between sessions (max_steps 100 for a first look, then full episodes) keeps seed 0's short run
+    where its new one failed: the group is shown, but not tested against Table 3 on a mixture."""
+    from orchestrator.tracking import TrialRun
+
+    params = {"method": "mpc", "task": "halfcheetah_running", "planner.algorithm": "icem", "planner.budget": "100",
+              "planner.horizon": "30", "planner.sigma_init": "0.5", "planner.elites": "10"}  # fmt: skip
+    runs = [
+        TrialRun("a", "old", FINISHED, "n", params | {"seed": "0", "max_steps": "100"}, {}, {"mean_return": 900.0}),
+        TrialRun("b", "new1", FINISHED, "n", params | {"seed": "1", "max_steps": "None"}, {}, {"mean_return": 5200.0}),
+        TrialRun("c", "new2", FINISHED, "n", params | {"seed": "2", "max_steps": "None"}, {}, {"mean_return": 5300.0}),
+    ]
+    for order in (runs, runs[::-1]):
+        (group,) = report.summarize(order, "episode_return", references=load_references(THESIS)).groups
+        assert group.comparison.verdict == "untested" and "differ in max_steps" in group.comparison.test
+    (same,) = report.summarize(runs[1:], "episode_return", references=load_references(THESIS)).groups
+    assert same.comparison.verdict != "untested"
+
+
 def test_the_penalty_figure_draws_a_line_per_planner_budget():
     """The budget is a label, not a swept setting: two budgets' groups on one line would zigzag between them."""
     from orchestrator import report_mbrl
