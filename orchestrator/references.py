@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 
 from orchestrator.yaml_problems import SweepError, SweepProblem, problems_from, read_yaml
 
@@ -45,12 +45,20 @@ class Reference(BaseModel):
     """The published value (a mean, or a success rate)."""
     spread: float | None = Field(None, ge=0)
     """The published +- figure, if any."""
-    spread_kind: Literal["std", "sem"] | None = None
-    """std: per-run standard deviation; sem: standard error of the mean."""
+    spread_kind: Literal["std", "sem"] | None = Field(None, validate_default=True)
+    """std: per-run standard deviation; sem: standard error of the mean. Required with a spread: read as the other,
+    a test is about sqrt(runs) times too strict or too lenient."""
     runs: int | None = Field(None, ge=1)
     """Independent runs behind the figure."""
     source: str = Field(min_length=1)
     """Where in the paper (table, figure, section)."""
+
+    @field_validator("spread_kind")
+    @classmethod
+    def _a_spread_says_its_kind(cls, kind: str | None, info: ValidationInfo) -> str | None:
+        if kind is None and info.data.get("spread") is not None:
+            raise ValueError("a spread needs its kind: std (per-run standard deviation) or sem (standard error)")
+        return kind
 
     def matches(self, task: str, method: str, params: Mapping[str, str], metric: str) -> bool:
         metrics = (self.metric,) if isinstance(self.metric, str) else self.metric

@@ -511,6 +511,17 @@ def test_a_reference_entry_without_a_source_is_refused_where_it_is(tmp_path):
     assert "paper.yaml:2: entries.0.source: required key is missing" in result.stderr
 
 
+def test_a_reference_spread_without_its_kind_is_refused_where_it_is(tmp_path):
+    """Read as a std where it is an sem, a test is sqrt(runs) times too lenient: the kind is asked for."""
+    (tmp_path / "paper.yaml").write_text(
+        "entries:\n  - {task: point_reach, metric: episode_return, value: 5, spread: 1, runs: 9, source: T}\n"
+    )
+    with pytest.raises(SweepError) as error:
+        load_references(tmp_path / "paper.yaml")
+    (problem,) = error.value.problems
+    assert (problem.line, problem.path) == (2, "entries.0.spread_kind") and "std" in problem.message
+
+
 def test_report_of_an_unknown_sweep_changes_nothing(tmp_path):
     result = cli("report", "never_ran", cwd=tmp_path)
     assert result.returncode == 1 and "has not run" in result.stderr
