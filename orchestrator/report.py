@@ -170,6 +170,8 @@ class Summary(NamedTuple):
     """Indices of the groups that share the best value, when more than one does."""
     baselines: tuple[str, ...] = ()
     """The sweep's baseline variants, when it names any (each group then carries its paired comparison)."""
+    unfinished: int = 0
+    """Trials of the sweep's plan without a finished run (failed, stopped, or not run yet): not in the figures."""
 
 
 def _rate_episodes(trial: TrialResult, metric: str, summary_key: str) -> int | None:
@@ -336,7 +338,8 @@ def summarize(
         leaders = tuple(i for i in finite if groups[i].mean == value)
         # A star on one of several equal groups (e.g. two 10/10 success rates) would rank what the data do not.
         best, tied = (leaders[0], ()) if len(leaders) == 1 else (None, leaders)
-    return Summary(groups, metric, summary_key, mode, best, tied, pairing.baselines if pairing else ())
+    unfinished = len(planned - {r.trial_key for r in results}) if planned is not None else 0
+    return Summary(groups, metric, summary_key, mode, best, tied, pairing.baselines if pairing else (), unfinished)
 
 
 def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: str, metric: str,
@@ -487,6 +490,10 @@ def format_table(summary: Summary) -> str:
     elif summary.tied:
         value = _number(summary.groups[summary.tied[0]].mean, metric)
         notes.append(f"no single best by {metric}: {len(summary.tied)} configurations tie at {value}")
+    if summary.unfinished:
+        # A seed that failed is as much a result as one that finished; its absence would go unseen in n.
+        notes.append(f"{summary.unfinished} planned trial(s) have no finished run (failed, stopped or not run "
+                     "yet) and are not in these figures; `icemlab status` lists them")  # fmt: skip
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:
         notes.append("published: " + "; ".join(sources) + "; tests two-sided, 5%")

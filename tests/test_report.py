@@ -844,6 +844,15 @@ def test_a_report_by_name_counts_each_seed_once_as_the_recorded_sweep_plans_it(t
     assert row["trials"] == "1" and float(row["episode_return_mean"]) == -4.0
 
 
+def test_the_table_says_how_many_planned_trials_are_not_in_it():
+    """Two of three planned seeds finished: the third (failed, or not run) is named, not silently left out."""
+    runs = [report_run("icem", value) for value in (1.0, 2.0)]
+    planned = {run.trial_key for run in runs} | {"failed-seed"}
+    table = report.format_table(report.summarize(runs, "episode_return", references=[], planned=planned))
+    assert "1 planned trial(s) have no finished run" in table
+    assert "planned trial" not in report.format_table(report.summarize(runs, "episode_return", references=[]))
+
+
 def test_a_report_by_name_says_when_the_sweeps_own_reference_cannot_be_read(tmp_path):
     (tmp_path / "paper.yaml").write_text(REFERENCE)
     store_rerun_seed(tmp_path, "name: own_ref\ntask: point_reach\nseeds: [0]\nreference: paper.yaml\n", "own_ref")
