@@ -230,8 +230,10 @@ RUN_ONLY_PARAMS = frozenset({"seed", "resources.threads_per_worker", "resources.
 
 
 def _settings_that_differ(members: list[TrialResult]) -> list[str]:
-    """The logged settings in which a configuration's runs differ (the seed and run-only params aside)."""
-    keys = {key for m in members for key in m.params} - RUN_ONLY_PARAMS
+    """The logged settings in which a configuration's runs differ (the seed and run-only params aside). A setting
+    only some runs log is no difference: settings added later keep the trial's key only at the value that
+    reproduces the earlier behaviour, which the runs that predate them ran with."""
+    keys = set.intersection(*(set(m.params) for m in members)) - RUN_ONLY_PARAMS
     return sorted(key for key in keys if len({m.params.get(key) for m in members}) > 1)
 
 
@@ -264,6 +266,12 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
     differences = reference.differences(first.params) if reference is not None else []
     if differences:  # a reduced run: the published figure stands beside it, untested (e.g. Table 9 at n = 2)
         comparison = statistics.Comparison("untested", "not tested: ran " + ", ".join(differences), math.nan, None)
+    if (reference is not None and reference.runs is None and reference.value in (0.0, 1.0) and len(values)
+            and bool(np.all((values >= 0) & (values <= 1)))):  # fmt: skip
+        # A rate of 0 or 1 taken as exact: one seed short of it reads "below" (statistics.compare_rate says why).
+        comparison = statistics.Comparison(
+            "untested", f"not tested: a published rate of {reference.value:g} without its run count", math.nan, None
+        )
     mixed = _settings_that_differ(members)
     if mixed and reference is not None:
         # Runs of one configuration that ran different settings: a sweep file edited between sessions (a base
@@ -346,8 +354,8 @@ def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: st
             episodes: Histories | None) -> PairedComparison | None:  # fmt: skip
     """``group`` against its baseline on their shared episodes where both logged them, else on their shared
     seeds; None for a baseline or where none matches."""
-    if group.variant in pairing.baselines:
-        return None
+    if group.variant in pairing.baselines or group.missing:
+        return None  # a seed without a value (censored) would drop out of the pairs, leaving survivors
 
     def point(g: Group) -> dict[str, Any]:
         return {key: g.setting.get(key) for key in pairing.grid_keys}
@@ -358,6 +366,8 @@ def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: st
                 name, group.task, group.labels, point(group)
             ):
                 continue
+            if baseline.missing:
+                return None
             mine, theirs = _per_episode(group, metric, episodes), _per_episode(baseline, metric, episodes)
             unit = "episode"
             if not mine or not theirs:
@@ -493,7 +503,8 @@ def format_table(summary: Summary) -> str:
     if summary.unfinished:
         # A seed that failed is as much a result as one that finished; its absence would go unseen in n.
         notes.append(f"{summary.unfinished} planned trial(s) have no finished run (failed, stopped or not run "
-                     "yet) and are not in these figures; `icemlab status` lists them")  # fmt: skip
+                     "yet); where an earlier run of the same configuration and seed finished (other code, another "
+                     "key), it stands in; `icemlab status` lists them")  # fmt: skip
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:
         notes.append("published: " + "; ".join(sources) + "; tests two-sided, 5%")
@@ -513,8 +524,9 @@ def to_csv(summary: Summary) -> str:
     setting_keys = sorted({k for g in summary.groups for k in g.setting})
     m = summary.metric
     writer.writerow(
-        ["task", "method", *label_keys, "variant", *setting_keys, "trials", "trials_without_value", f"{m}_mean", f"{m}_sem",
-         f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes", "episodes",
+        ["task", "method", *label_keys, "variant", *setting_keys, "trials", "trials_without_value", f"{m}_mean",
+         f"{m}_sem", f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes",
+         "episodes",
          "seconds_per_step", "published", "published_spread", "published_runs", "published_source", "verdict",
          "test", "p_value", "runs_to_settle", "best", "paired_baseline", "paired_pairs", f"paired_{m}_difference",
          "paired_test", "paired_p_value", "paired_unit"]

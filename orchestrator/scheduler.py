@@ -342,7 +342,9 @@ class SweepScheduler:
                     self._refuse_mixed_physics(runs)
                 if previous.status == RUNNING:
                     self._record_a_lost_driver(previous, runs)
-                self.tracker.reopen_sweep(previous.run_id, self.loaded.file_hash, len(self.loaded.trials))
+                self.tracker.reopen_sweep(
+                    previous.run_id, self.loaded.file_hash, len(self.loaded.trials), self.loaded.text
+                )
                 self._parent_id = previous.run_id
                 return runs
         self._parent_id = self.tracker.start_sweep(
@@ -689,8 +691,10 @@ class SweepScheduler:
             return None
 
         round_report, data, recovered = value
-        self._record_recoveries(state, recovered)
+        # Marked reported before they are recorded: a store that fails half-way must not make an abort's table read
+        # record them a second time.
         attempt.reported.update(RoleWorkerLost.role_in(cause) for cause in recovered)
+        self._record_recoveries(state, recovered)
         self._record_restarts(attempt)
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
@@ -906,8 +910,11 @@ class SweepScheduler:
         problems: list[Exception] = []
         # A trial whose launch failed before its run was created has no run to close.
         for state in [s for s in self._states if s.launched_here and not s.closed_here and s.run_id is not None]:
-            try:
+            try:  # on its own: a refused recovery record must not keep the run from being closed
                 self._record_recoveries(state, lost.get(id(state), []))
+            except Exception as error:  # noqa: BLE001
+                problems.append(error)
+            try:
                 run = self.tracker.trial_run(state.run_id)
                 if run is not None and run.status == RUNNING:
                     self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)

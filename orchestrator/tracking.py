@@ -377,8 +377,16 @@ class Tracker:
         self.client.log_text(run.info.run_id, yaml_text, "sweep.yaml")
         return run.info.run_id
 
-    def reopen_sweep(self, run_id: str, file_hash: str, planned_trials: int) -> None:
-        """Mark a parent run RUNNING again for a resume; an earlier session's driver error is history."""
+    def reopen_sweep(self, run_id: str, file_hash: str, planned_trials: int, yaml_text: str | None = None) -> None:
+        """Mark a parent run RUNNING again for a resume; an earlier session's driver error is history. A sweep
+        file edited since (``yaml_text``) becomes the run's sweep.yaml, what `icemlab report NAME` plans from;
+        the one it replaces is kept under sweep_history/."""
+        if yaml_text is not None:
+            recorded = self.recorded_sweep(run_id)
+            if recorded is not None and recorded != yaml_text:
+                self.client.log_text(run_id, recorded, f"sweep_history/sweep_{_now_ms()}.yaml")
+            if recorded != yaml_text:
+                self.client.log_text(run_id, yaml_text, "sweep.yaml")
         self.client.update_run(run_id, status=RUNNING)
         tags = self.client.get_run(run_id).data.tags
         for tag in (TAG_ERROR, TAG_ERROR_CLASS):

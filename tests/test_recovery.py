@@ -128,6 +128,31 @@ def test_a_loss_whose_restore_fails_is_handed_on_once_not_also_as_recovered(monk
     assert harmed.recoveries_left == 5
 
 
+def test_a_memory_kill_whose_restore_fails_is_still_a_memory_kill(monkeypatch):
+    """The restore's own error ("still restarting") must not replace the loss's words: the driver's advice for a
+    memory kill (fewer trials at once, fewer threads) hangs on them."""
+    from orchestrator.failures import classify
+    from workers import actors
+
+    class KilledForMemory(LocalRoleGroup):
+        def submit(self, member: int, method: str, *args):
+            if method == "train":
+                raise RoleWorkerLost(self.name, "the worker was killed due to the node running low on memory")
+            if method == "load_state_dict":
+                raise RoleWorkerLost(self.name, "ActorUnavailableError: restarting")
+            return super().submit(member, method, *args)
+
+    monkeypatch.setattr(actors, "RESTART_PAUSES", (0.0,))
+    trial = toy_trial()
+    (spec,) = toy_method.ToyProgram.roles_for(trial, 1, {})
+    group = KilledForMemory(spec.name, [spec.worker(**spec.kwargs)])
+    harmed = ProgramRunner(trial, {"trainer": group}, 1, recoveries=5)
+    with pytest.raises(RoleWorkerLost) as lost:
+        harmed.run_round(0)
+    failure = classify(pickle.loads(pickle.dumps(lost.value)))
+    assert failure.memory and "restoring its state failed" in str(lost.value) and failure.role == "trainer"
+
+
 def test_a_round_that_fails_without_a_recovery_carries_none():
     from orchestrator.failures import classify
 

@@ -643,6 +643,51 @@ def test_a_configuration_whose_runs_ran_different_settings_is_not_tested():
     assert same.comparison.verdict != "untested"
 
 
+def test_a_setting_only_later_runs_log_does_not_make_a_configuration_mixed():
+    """A setting added to the code later keeps old trials' keys only at the value they ran with, so runs that
+    predate it (no such param) and runs that log it are one configuration and are tested."""
+    from orchestrator.tracking import TrialRun
+
+    params = {"method": "mpc", "task": "halfcheetah_running", "planner.algorithm": "icem", "planner.budget": "100",
+              "max_steps": "None", "planner.horizon": "30", "planner.sigma_init": "0.5", "planner.elites": "10"}  # fmt: skip
+    runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", params | {"seed": str(s)} | extra, {}, {"mean_return": v})
+            for s, v, extra in [(0, 5100.0, {}), (1, 5200.0, {"planner.noise_release": "2.1"}),
+                                (2, 5300.0, {"planner.noise_release": "2.1"})]]  # fmt: skip
+    (group,) = report.summarize(runs, "episode_return", references=load_references(THESIS)).groups
+    assert group.comparison.verdict != "untested"
+
+
+def test_a_published_rate_of_one_without_runs_is_not_tested_against_per_seed_rates():
+    """APEX's Door expert at Table 9's 1.0 (no run count): seeds at 0.96-1.0 are not "below" an exact 1."""
+    from orchestrator.tracking import TrialRun
+
+    params = {"method": "apex", "task": "door_sparse"}
+    runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", params | {"seed": str(s)}, {}, {"final_expert_success": v})
+            for s, v in enumerate([1.0, 0.96, 0.98, 0.97, 0.99])]  # fmt: skip
+    reference = Reference(task="door_sparse", method="apex", metric="expert_success", value=1.0, source="t")
+    (group,) = report.summarize(runs, "expert_success", references=[reference]).groups
+    assert group.comparison.verdict == "untested" and "without its run count" in group.comparison.test
+
+
+def test_a_variant_with_seeds_without_a_value_is_not_paired_with_its_baseline():
+    """Seeds that never crossed the threshold would drop out of the pairs: the survivors' difference is no test."""
+    from orchestrator.tracking import TAG_VARIANT, TrialRun
+
+    def run(variant, seed, value):
+        params = {"method": "napsp", "task": "point_maze", "seed": str(seed)}
+        return TrialRun(f"{variant}{seed}", f"k{variant}{seed}", FINISHED, "n", params, {TAG_VARIANT: variant},
+                        {"episodes_to_threshold": value})  # fmt: skip
+
+    runs = [run("base", s, 500.0 + s) for s in range(4)] + [run("ours", s, v) for s, v in
+                                                            enumerate([300.0, 310.0, math.nan, math.nan])]  # fmt: skip
+    summary = report.summarize(runs, "episodes_to_threshold", "min", [], pairing=report.Pairing(("base",), ()))
+    groups = {g.variant: g for g in summary.groups}
+    assert groups["ours"].paired is None
+    complete = [r for r in runs if r.run_id not in ("ours2", "ours3")] + [run("ours", 2, 320.0), run("ours", 3, 330.0)]
+    summary = report.summarize(complete, "episodes_to_threshold", "min", [], pairing=report.Pairing(("base",), ()))
+    assert {g.variant: g for g in summary.groups}["ours"].paired is not None
+
+
 def test_the_penalty_figure_draws_a_line_per_planner_budget():
     """The budget is a label, not a swept setting: two budgets' groups on one line would zigzag between them."""
     from orchestrator import report_mbrl

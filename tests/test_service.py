@@ -115,8 +115,13 @@ def test_cli_sweep_lands_in_mlflow(tmp_path):
     assert "finished 4 of 4  running 0  failed 0  killed 0" in cli("status", cwd=tmp_path).stdout
     began = tracker.sweeps()[0].session_started
     assert began is not None and began <= time.time()
-    tracker.reopen_sweep(parent.run_id, "edited", planned_trials=6)
+    first = tracker.recorded_sweep(parent.run_id)
+    tracker.reopen_sweep(parent.run_id, "edited", planned_trials=6, yaml_text=first + "# edited\n")
     assert "finished 4 of 6" in cli("status", str(sweep), cwd=tmp_path).stdout
+    # The edited file is what a report by name plans from; the first one is kept.
+    assert tracker.recorded_sweep(parent.run_id) == first + "# edited\n"
+    (kept,) = tracker.list_files(parent.run_id, "sweep_history")
+    assert tracker.download(parent.run_id, kept, tmp_path / "kept").read_text() == first
     assert tracker.sweeps()[0].session_started > began  # a resume starts the session `icemlab status` paces
 
 
@@ -658,6 +663,32 @@ def test_ctrl_c_while_the_sweeps_run_is_opened_ends_it_killed_not_running(tmp_pa
         SweepScheduler(load_sweep(sweep), tracker).run()
     parent, children = sweep_runs(tracker.uri, "early_ctrl_c")
     assert parent.status == KILLED and children == []
+
+
+def test_a_recovery_half_recorded_before_the_store_failed_is_not_recorded_again_by_the_abort(tmp_path):
+    """The store takes a recovery's metric, then refuses its file: the driver error's abort reads Ray's table for
+    losses the runner did not report, and must count that one as reported (one record, not two); a refused record
+    there must not keep the run from being closed KILLED."""
+    from orchestrator.scheduler import Attempt
+    from workers.methods import RoleWorkerLost, RoundReport
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "half_recorded_abort", lost_left=5)
+    state.launched_here = True
+    attempt = Attempt(state, RunnerlessGroup(stateful={"trainer": 1}), phase="running")
+    scheduler._active, scheduler._states = [attempt], [state]
+    log_text = tracker.client.log_text
+
+    def refuses(*args, **kwargs):
+        raise OSError("store refused")
+
+    tracker.client.log_text = refuses
+    reported = [str(RoleWorkerLost("trainer", "killed"))]
+    with pytest.raises(OSError):
+        scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", reported))
+    tracker.client.log_text = log_text
+    scheduler._abort(tracker.find_sweep_run("half_recorded_abort", "r").run_id, "driver_error", "store refused", "")
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0)]
+    assert tracker.trial_run(state.run_id).status == KILLED
 
 
 def test_workers_lost_in_a_round_cut_short_by_ctrl_c_are_recorded(tmp_path):

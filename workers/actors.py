@@ -163,7 +163,11 @@ class ProgramRunner:
                         raise
                     # Counted once restored: a restore that fails hands this same loss on as the round's error,
                     # and it must not also be reported as recovered.
-                    self._restore_last_round()
+                    try:
+                        self._restore_last_round()
+                    except RoleWorkerLost as failed:
+                        # The loss's own words (a memory kill says so) with why it could not be recovered.
+                        raise RoleWorkerLost(lost.role, f"{lost.cause}; restoring its state failed: {failed}") from None
                     self.recoveries_left -= 1
                     recovered.append(str(lost))
         except Exception as error:
