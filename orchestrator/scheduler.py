@@ -467,7 +467,10 @@ class SweepScheduler:
                 return self._drive(self._parent_id, states, skipped, threads, concurrent, interrupt)
         except KeyboardInterrupt:
             if self._parent_id is not None:
-                self._abort(self._parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
+                # A Ctrl-C pressed again while the runs are closed would leave them RUNNING half-way: it waits for
+                # the closing (a third one still stops it at once).
+                with InterruptRequest():
+                    self._abort(self._parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
             raise
         except Exception as error:
             # The driver itself failed (the tracking store, a round report it could not log, ...): say so in

@@ -691,6 +691,28 @@ def test_a_recovery_half_recorded_before_the_store_failed_is_not_recorded_again_
     assert tracker.trial_run(state.run_id).status == KILLED
 
 
+def test_ctrl_c_pressed_again_while_the_runs_are_closed_lets_the_closing_finish(tmp_path, local_ray):
+    """The second Ctrl-C of an impatient user lands while the interrupted sweep's run is being closed: the run
+    still ends KILLED rather than RUNNING (which the next --resume would take for a lost driver)."""
+    sweep = toy_sweep(tmp_path, "impatient")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    start_sweep, end_sweep = tracker.start_sweep, tracker.end_sweep
+
+    def pressed(*args, **kwargs):
+        run_id = start_sweep(*args, **kwargs)
+        signal.raise_signal(signal.SIGINT)
+        return run_id
+
+    def pressed_again(*args, **kwargs):
+        signal.raise_signal(signal.SIGINT)
+        return end_sweep(*args, **kwargs)
+
+    tracker.start_sweep, tracker.end_sweep = pressed, pressed_again
+    with pytest.raises(KeyboardInterrupt):
+        SweepScheduler(load_sweep(sweep), tracker).run()
+    assert sweep_runs(tracker.uri, "impatient")[0].status == KILLED
+
+
 def test_workers_lost_in_a_round_cut_short_by_ctrl_c_are_recorded(tmp_path):
     """Ctrl-C ends a round whose report never comes: the workers Ray restarted in it (stateless ones, and stateful
     ones the runner recovered) are read from the actor table before the actors go, and recorded."""
