@@ -144,9 +144,13 @@ class Group(NamedTuple):
         values = [t.values[key] for t in self.trials if key in t.values]
         return float(np.mean(values)) if values else None
 
-    def name(self) -> str:
+    def label_parts(self) -> list[str]:
+        """The group's labels as its method writes them (``icem``, ``b100``; a model preset)."""
         program = METHODS.get(self.method)
-        parts = program.label_text(self.labels) if program and self.labels else list(self.labels.values())
+        return program.label_text(self.labels) if program and self.labels else list(self.labels.values())
+
+    def name(self) -> str:
+        parts = self.label_parts()
         if self.variant:
             parts.append(self.variant)
         parts += self.setting_text()
@@ -266,12 +270,9 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
     differences = reference.differences(first.params) if reference is not None else []
     if differences:  # a reduced run: the published figure stands beside it, untested (e.g. Table 9 at n = 2)
         comparison = statistics.Comparison("untested", "not tested: ran " + ", ".join(differences), math.nan, None)
-    if (reference is not None and reference.runs is None and reference.value in (0.0, 1.0) and len(values)
-            and bool(np.all((values >= 0) & (values <= 1)))):  # fmt: skip
-        # A rate of 0 or 1 taken as exact: one seed short of it reads "below" (statistics.compare_rate says why).
-        comparison = statistics.Comparison(
-            "untested", f"not tested: a published rate of {reference.value:g} without its run count", math.nan, None
-        )
+    boundary = statistics.exact_boundary_rate(reference.value, reference.runs) if reference is not None else None
+    if boundary is not None and len(values) and bool(np.all((values >= 0) & (values <= 1))):  # per-seed rates too
+        comparison = boundary
     mixed = _settings_that_differ(members)
     if mixed and reference is not None:
         # Runs of one configuration that ran different settings: a sweep file edited between sessions (a base

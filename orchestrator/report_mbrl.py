@@ -77,18 +77,11 @@ def frozen_points(trials: Iterable[Any]) -> list[FrozenPoint]:
     return points
 
 
-def _labels(group: Any) -> list[str]:
-    """A group's labels as its method writes them (planner algorithm and budget, model preset): the report keeps
-    them out of the swept settings, so lines named by settings alone would join groups that differ there."""
-    from workers.methods import METHODS
-
-    program = METHODS.get(group.method)
-    return program.label_text(group.labels) if program and group.labels else list(group.labels.values())
-
-
 def _configuration(group: Any) -> list[str]:
-    """What names a group beside its swept settings: its labels and its variant."""
-    return [*_labels(group), group.variant or ""]
+    """What names a group beside its swept settings: its labels (planner algorithm and budget, model preset: the
+    report keeps them out of the settings, so lines named by settings alone would join groups that differ there)
+    and its variant."""
+    return [*group.label_parts(), group.variant or ""]
 
 
 def _label(group: Any) -> str:
@@ -273,7 +266,7 @@ def penalty_figure(summary: Any):
         if PENALTY_SETTING in group.setting:
             rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k != PENALTY_SETTING)
             # The variant is left out: in these sweeps it names the penalty, the x-axis.
-            lines[" ".join(filter(None, [group.task, *_labels(group), _particles(group), rest]))].append(group)
+            lines[" ".join(filter(None, [group.task, *group.label_parts(), _particles(group), rest]))].append(group)
     points = {name: [(g.setting[PENALTY_SETTING], g) for g in members] for name, members in lines.items()}
     return _group_lines_figure(points, "aleatoric penalty w_A (0: PETS)", summary.metric,
                                "against the aleatoric penalty (thesis Fig. 19b: RAZER's drop rate < 0.2)")  # fmt: skip
@@ -312,7 +305,7 @@ def noise_figure(summary: Any):
         weight = group.setting[PENALTY_SETTING]
         rest = " ".join(f"{k}={v}" for k, v in sorted(group.setting.items()) if k not in (PENALTY_SETTING, option))
         name = "PETS" if weight == 0 else f"RAZER w_A={weight}"
-        lines[" ".join(filter(None, [name, *_labels(group), _particles(group), rest]))].append((x, group))
+        lines[" ".join(filter(None, [name, *group.label_parts(), _particles(group), rest]))].append((x, group))
     return _group_lines_figure(lines, option.removeprefix("task_options."), summary.metric,
                                "against the noise (thesis Fig. 19b: RAZER's drop rate < 0.2)")  # fmt: skip
 

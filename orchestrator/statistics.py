@@ -152,6 +152,16 @@ def _verdict(p_value: float, below: bool) -> str:
     return "below" if below else "above"
 
 
+def exact_boundary_rate(published: float, published_runs: int | None) -> Comparison | None:
+    """The untested comparison with a published rate of 0 or 1 given without its run count, else None. Taken as
+    exact, a published 100% makes a single failure impossible (p = 0); it was itself counted over runs the
+    reference does not give."""
+    if published_runs is None and published in (0.0, 1.0):
+        return Comparison("untested", f"not tested: a published rate of {published:g} without its run count",
+                          math.nan, None)  # fmt: skip
+    return None
+
+
 def compare_rate(successes: int, trials: int, published: float, published_runs: int | None = None) -> Comparison:
     """``successes`` out of ``trials`` against a published success rate: Fisher's exact test against the
     published successes when ``published_runs`` says how many runs the rate came from, else the exact binomial
@@ -166,11 +176,9 @@ def compare_rate(successes: int, trials: int, published: float, published_runs: 
         test = "Fisher exact"
         published = theirs / published_runs
     else:
-        if published in (0.0, 1.0):
-            # Taken as exact, a published 100% makes a single failure impossible (p = 0); it was itself estimated
-            # from runs the reference does not count.
-            return Comparison("untested", f"not tested: a published rate of {published:g} without its run count",
-                              math.nan, None)  # fmt: skip
+        boundary = exact_boundary_rate(published, published_runs)
+        if boundary is not None:
+            return boundary
         p_value = float(stats.binomtest(successes, trials, published).pvalue)
         test = "exact binomial"
     verdict = _verdict(p_value, observed < published)
