@@ -208,7 +208,10 @@ class Attempt:
     restarts_seen: dict[str, int] = field(default_factory=dict)
     """Restarts of each stateless role's workers already recorded (see :meth:`SweepScheduler._record_restarts`)."""
     reported: Counter[str] = field(default_factory=Counter)
-    """Stateful workers' losses the runner reported recovered, by role (see :meth:`SweepScheduler._unreported`)."""
+    """Stateful workers' losses the runner reported (recovered, or the failure's own), by role."""
+    accounted: Counter[str] = field(default_factory=Counter)
+    """Stateful workers' losses recorded so far, by role, from whichever source told first: the runner's reports or
+    Ray's actor table (see :meth:`SweepScheduler._reported_losses` and :meth:`SweepScheduler._unreported`)."""
 
 
 class SweepState(NamedTuple):
@@ -694,11 +697,8 @@ class SweepScheduler:
             return None
 
         round_report, data, recovered = value
-        # Marked reported before they are recorded: a store that fails half-way must not make an abort's table read
-        # record them a second time.
-        attempt.reported.update(RoleWorkerLost.role_in(cause) for cause in recovered)
-        self._record_recoveries(state, recovered)
-        self._record_restarts(attempt)
+        self._record_recoveries(state, self._reported_losses(attempt, recovered))
+        self._record_restarts(attempt, "its round ended")
         if attempt.machine_ref is not None:  # answered long before the round's result
             machine = ray.get(attempt.machine_ref)
             self.tracker.record_machine(state.run_id, machine)
@@ -742,6 +742,9 @@ class SweepScheduler:
     def _close_finished(self, attempt: Attempt) -> str:
         """End a trial whose last round is logged, summarised and checkpointed: its run FINISHED."""
         state = attempt.state
+        # A stateful worker restarted between calls whose first call was its state loader (a restore handed it its
+        # state) tripped nothing the runner reports: Ray's table is the only record of that loss.
+        self._record_restarts(attempt, "its trial finished")
         self.tracker.end_trial(state.run_id, FINISHED)
         state.closed_here = True
         state.rounds_done = state.total_rounds
@@ -755,10 +758,15 @@ class SweepScheduler:
             state.recovered += 1
             self.tracker.record_recovery(state.run_id, state.recovered, LOST_PROCESS, cause)
 
-    def _record_restarts(self, attempt: Attempt) -> None:
-        """Stateless workers that Ray restarted since the last look: their calls were retried and the trial went
-        on untouched, but each was a lost process, so it is recorded as a recovery and spends the budget."""
-        self._record_recoveries(attempt.state, self._new_restarts(attempt))
+    def _record_restarts(self, attempt: Attempt, when: str) -> None:
+        """Workers Ray restarted that no report of the runner's accounts for, recorded as recoveries that spend the
+        budget: stateless ones (their calls were retried and the trial went on untouched, but each was a lost
+        process) and unreported stateful ones (:meth:`_unreported`).
+
+        Args:
+            when: the moment of the look, for the stateful causes ("its round ended").
+        """
+        self._record_recoveries(attempt.state, self._new_restarts(attempt) + self._unreported(attempt, when))
 
     def _new_restarts(self, attempt: Attempt) -> list[str]:
         """Causes of the stateless workers Ray restarted since the last look (which they are marked seen by)."""
@@ -771,27 +779,44 @@ class SweepScheduler:
                 attempt.restarts_seen[role] = count
         return causes
 
-    def _unreported(self, attempt: Attempt, ending: str, failure: Failure | None = None) -> list[str]:
-        """Causes of the stateful workers Ray restarted in this attempt that neither the runner reported nor the
-        failure is about: the runner reports a recovery only with its round's result or error, so a runner lost
-        (or stopped by Ctrl-C) later in the round takes the report with it. Ray's actor table still counts the
-        restart.
+    def _reported_losses(self, attempt: Attempt, causes: Sequence[str]) -> list[str]:
+        """Of the stateful losses the runner reports, those not yet recorded from Ray's table, marked recorded.
+
+        Both sources count the same restarts, each possibly late: the runner reports a loss only when a call
+        trips over it (with the round's result or error), and the table may lag the runner. So each role's
+        recorded count is the larger of the two, and a loss is recorded by whichever tells first. Marked before
+        they are recorded: a store that fails half-way must not make an abort's table read record them again.
+        """
+        new = []
+        for cause in causes:
+            role = RoleWorkerLost.role_in(cause)
+            attempt.reported[role] += 1
+            if attempt.reported[role] > attempt.accounted[role]:
+                attempt.accounted[role] += 1
+                new.append(cause)
+        return new
+
+    def _unreported(self, attempt: Attempt, when: str) -> list[str]:
+        """Causes of the stateful restarts in Ray's table beyond those accounted for, marked accounted.
+
+        The runner never reports a worker lost between calls whose next call is its state loader (a restore for
+        another loss, or an attempt's start, hands it its state), and a runner lost (or stopped by Ctrl-C) later in
+        the round takes its report with it. Read at every round's end, at the trial's end and when an attempt
+        ends; a loss the runner reports later is then not recorded again (:meth:`_reported_losses`).
 
         Args:
-            ending: how the attempt ended (a failure's kind, or an abort's), for the cause.
+            when: the moment of the look, for the cause ("its round ended", "the attempt ended (lost_process)").
         """
-        accounted = Counter(attempt.reported)
-        if failure is not None:
-            accounted.update(RoleWorkerLost.role_in(cause) for cause in failure.recovered)
-            if failure.role is not None:
-                accounted[failure.role] += 1
         causes = []
         for role, count in attempt.group.stateful_restarts().items():
-            cause = (
-                f"a worker of role {role!r} was lost and Ray restarted it; the attempt ended ({ending}) before "
-                "the trial's runner reported it"
-            )
-            causes += [cause] * max(0, count - accounted[role])
+            unseen = count - attempt.accounted[role]
+            if unseen > 0:
+                cause = (
+                    f"a worker of role {role!r} was lost and Ray restarted it; no report of the trial's runner "
+                    f"accounted for it when {when} (read from Ray's actor table)"
+                )
+                causes += [cause] * unseen
+                attempt.accounted[role] = count
         return causes
 
     def _budget_spent(self, state: TrialState) -> Failure:
@@ -813,13 +838,14 @@ class SweepScheduler:
     def _failed(self, attempt: Attempt, failure: Failure) -> str:
         """Record a failed attempt and decide: "retry" (queued again) or "failed" (the trial is FAILED)."""
         state = attempt.state
-        self._record_restarts(attempt)  # those Ray made before the failure
-        unreported = self._unreported(attempt, failure.kind, failure)  # read before the actors go
-        self._end_attempt(attempt)
+        recovered = self._reported_losses(attempt, failure.recovered)  # made in the round before it failed
+        if failure.role is not None:  # the loss this failure is about: recorded as the failure, not as a recovery
+            self._reported_losses(attempt, [str(RoleWorkerLost(failure.role, failure.cause))])
+        restarted = self._new_restarts(attempt) + self._unreported(attempt, f"the attempt ended ({failure.kind})")
+        self._end_attempt(attempt)  # after the table reads: they need the actors
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
         detail = "the same error as an earlier attempt (see its file)" if repeat else failure.detail
-        self._record_recoveries(state, failure.recovered)  # made in the round before it failed
-        self._record_recoveries(state, unreported)
+        self._record_recoveries(state, recovered + restarted)
         self.tracker.record_failure(state.run_id, state.attempts, failure.kind, failure.cause, detail)
         if failure.kind == BAD_CHECKPOINT and attempt.checkpoint_round is not None:
             state.bad_checkpoints.add(attempt.checkpoint_round)
@@ -903,7 +929,8 @@ class SweepScheduler:
         lost: dict[int, list[str]] = {}  # workers lost in the rounds cut short, read while the actors exist
         for attempt in list(self._active):
             try:
-                lost[id(attempt.state)] = self._new_restarts(attempt) + self._unreported(attempt, kind)
+                ended = f"the attempt ended ({kind})"
+                lost[id(attempt.state)] = self._new_restarts(attempt) + self._unreported(attempt, ended)
             except Exception:  # noqa: BLE001 - the cluster's table may be going down with the same signal
                 pass
             try:

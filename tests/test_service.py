@@ -458,6 +458,7 @@ class RunnerlessGroup:
             return "ref"
 
     runner = type("Runner", (), {"run_round": _Call()})()
+    cpus = 1
 
     def __init__(self, restarts: dict[str, int] | None = None, stateful: dict[str, int] | None = None):
         self.restarts = restarts or {}
@@ -921,7 +922,7 @@ def test_a_stateful_recovery_whose_report_died_with_the_runner_is_recorded_from_
         tracker.download(state.run_id, f"failures/recovery_00{n}_lost_process.txt", tmp_path / str(n)).read_text()
         for n in (2, 3)
     ]
-    assert ["role 'trainer' was lost and Ray" in texts[0], "role 'learner' was lost and Ray" in texts[1]] == [1, 1]
+    assert "role 'trainer' was lost and Ray" in texts[0] and "role 'learner' was lost and Ray" in texts[1]
 
     # A loss the failure is about, or one reported before it, is not recorded a second time.
     attempt = Attempt(state, RunnerlessGroup(stateful={"trainer": 2}), phase="running", round_index=1)
@@ -930,6 +931,55 @@ def test_a_stateful_recovery_whose_report_died_with_the_runner_is_recorded_from_
     )
     assert scheduler._failed(attempt, trainer_lost) == "retry"
     assert state.recovered == 4 and state.lost_left == 0
+
+
+@pytest.mark.parametrize("closing", ["after its last round", "restored after its last round"])
+def test_a_stateful_loss_no_call_tripped_over_is_recorded_when_the_trial_finishes(tmp_path, closing):
+    """A stateful worker lost between calls whose first call after it was its state loader (a restore handed it its
+    state) trips nothing, so the runner reports nothing; Ray's table still counts the restart. A trial that then
+    finishes records it, and it spends the budget, as it would have had the attempt failed."""
+    from orchestrator.scheduler import Attempt
+    from workers.methods import RoundReport
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "loader_first", lost_left=3)
+    group = RunnerlessGroup(stateful={"trainer": 1})
+    if closing == "after its last round":
+        attempt = Attempt(state, group, phase="running", round_index=3)
+        last = RoundReport(3, {"loss": 1.0}, step=3, done=True, summary={"final_loss": 1.0})
+        assert scheduler._advance(attempt, (last, b"state", [])) == "finished"
+    else:  # the driver died after the last checkpoint: the resume restores it and only closes the run
+        attempt = Attempt(state, group, phase="restoring", checkpoint_round=3)
+        assert scheduler._advance(attempt, 4) == "finished"
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0)]
+    assert state.lost_left == 2
+    text = tracker.download(state.run_id, "failures/recovery_001_lost_process.txt", tmp_path / "r").read_text()
+    assert "role 'trainer' was lost and Ray restarted it" in text
+
+
+def test_a_stateful_loss_is_recorded_once_whether_rays_table_or_the_runner_tells_first(tmp_path):
+    """Both count the same restarts, each possibly late: a loss read from the table at a round's end is not recorded
+    again when the runner trips over it in the next round, and one the runner reports before the table shows it is
+    not recorded again when the table catches up."""
+    from orchestrator.failures import LOST_PROCESS, Failure
+    from orchestrator.scheduler import Attempt
+    from workers.methods import RoleWorkerLost, RoundReport
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "told_first", lost_left=5)
+    group = RunnerlessGroup(stateful={"trainer": 1})  # lost after its last call of round 0
+    attempt = Attempt(state, group, phase="running", round_index=0)
+    scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", []))
+    assert state.recovered == 1
+    reported = [str(RoleWorkerLost("trainer", "restarted without its state"))]
+    scheduler._advance(attempt, (RoundReport(1, {"loss": 1.0}, step=1), b"state", reported))  # round 1 tripped
+    assert state.recovered == 1
+    group.stateful = {"trainer": 1}  # a second loss, reported before the table shows it
+    scheduler._advance(attempt, (RoundReport(2, {"loss": 1.0}, step=2), b"state", reported))
+    assert state.recovered == 2
+    group.stateful = {"trainer": 2}  # the table catches up; then the runner is lost
+    runner_lost = Failure(LOST_PROCESS, "ActorDiedError: the runner", "detail", "sig")
+    assert scheduler._failed(attempt, runner_lost) == "retry"
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0), (2, 1.0)]
+    assert state.lost_left == 2  # two workers and the runner
 
 
 def test_recoveries_in_place_past_the_budget_stop_the_trial_after_the_round(tmp_path):
