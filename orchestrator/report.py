@@ -131,6 +131,9 @@ class Group(NamedTuple):
     missing: int = 0
     """Trials without a finite value of the metric (e.g. a seed that never reached the threshold): the mean and
     interval are of the others, so the group is neither tested nor ranked best."""
+    mixed: tuple[str, ...] = ()
+    """Settings its runs differ in (a sweep file edited between sessions): the mean is of a mixture, so the group is
+    neither tested, ranked best nor paired."""
 
     @property
     def n(self) -> int:
@@ -291,7 +294,7 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
     flags = successes is not None and bool(np.isin(values, (0.0, 1.0)).all())
     return Group(task, method, dict(labels), variant or None, setting, members, mean, sem, interval,
                  None if flags else statistics.iqm_interval(values), successes, reference, comparison,
-                 missing=missing)  # fmt: skip
+                 missing=missing, mixed=tuple(mixed))  # fmt: skip
 
 
 def summarize(
@@ -339,7 +342,7 @@ def summarize(
     if pairing is not None:
         groups = [group._replace(paired=_paired(group, groups, pairing, summary_key, metric, episodes))
                   for group in groups]  # fmt: skip
-    finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean) and not g.missing]
+    finite = [i for i, g in enumerate(groups) if math.isfinite(g.mean) and not g.missing and not g.mixed]
     best, tied = None, ()
     if finite:
         pick = max if mode == "max" else min
@@ -355,8 +358,10 @@ def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: st
             episodes: Histories | None) -> PairedComparison | None:  # fmt: skip
     """``group`` against its baseline on their shared episodes where both logged them, else on their shared
     seeds; None for a baseline or where none matches."""
-    if group.variant in pairing.baselines or group.missing:
-        return None  # a seed without a value (censored) would drop out of the pairs, leaving survivors
+    if group.variant in pairing.baselines or group.missing or group.mixed:
+        # A seed without a value (censored) would drop out of the pairs, leaving survivors; a mixed group's seeds
+        # ran different settings, so their differences are not the variant's effect.
+        return None
 
     def point(g: Group) -> dict[str, Any]:
         return {key: g.setting.get(key) for key in pairing.grid_keys}
@@ -367,7 +372,7 @@ def _paired(group: Group, groups: list[Group], pairing: Pairing, summary_key: st
                 name, group.task, group.labels, point(group)
             ):
                 continue
-            if baseline.missing:
+            if baseline.missing or baseline.mixed:
                 return None
             mine, theirs = _per_episode(group, metric, episodes), _per_episode(baseline, metric, episodes)
             unit = "episode"
@@ -469,6 +474,8 @@ def _estimate_text(group: Group, metric: str) -> str:
         text += f" ({group.successes[0]}/{group.successes[1]})"
     if group.missing:
         text += f" (of {group.n - group.missing}; {group.missing} without a value)"
+    if group.mixed:
+        text += f" (runs differ in {', '.join(group.mixed)})"
     if math.isfinite(low):
         text += f" [{_number(low, metric)}, {_number(high, metric)}]"
     return text

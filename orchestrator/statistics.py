@@ -231,7 +231,8 @@ def compare_mean(values: np.ndarray, published: float, spread: float | None, spr
         # the mean is taken as exact, and the test's name says the spread went unused.
         test = "one-sample t-test"
         if spread is not None:
-            test += f", published spread unused ({'no run count' if runs is None else 'one run'})"
+            why = "no run count" if runs is None else "one run" if runs < 2 else "a spread of 0"
+            test += f", published spread unused ({why})"
     p_value = float(result.pvalue)
     verdict = _verdict(p_value, mean < published)
     if verdict != "consistent" or mean == published:

@@ -89,6 +89,8 @@ def test_a_reference_of_one_run_or_constant_runs_are_tested_only_where_a_test_is
     assert statistics.compare_mean(np.array([5.0]), 3.0, 1.0, "std", 10).verdict == "untested"
     assert statistics._verdict(math.nan, below=True) == "untested"  # whatever test returns an undefined p-value
     assert statistics.compare_mean(np.array([5.0, 5.0, 5.0]), 3.0, 1.0, "std", 10).test == "Welch t-test"
+    zero = statistics.compare_mean(np.array([9.0, 10.0, 11.0]), 8.0, 0.0, "std", 5)  # a spread of 0 over 5 runs
+    assert zero.test == "one-sample t-test, published spread unused (a spread of 0)"
 
 
 def test_a_published_rate_over_known_runs_is_tested_as_a_second_sample():
@@ -641,6 +643,32 @@ def test_a_configuration_whose_runs_ran_different_settings_is_not_tested():
         assert group.comparison.verdict == "untested" and "differ in max_steps" in group.comparison.test
     (same,) = report.summarize(runs[1:], "episode_return", references=load_references(THESIS)).groups
     assert same.comparison.verdict != "untested"
+
+
+def test_a_configuration_whose_runs_ran_different_settings_is_neither_ranked_nor_paired():
+    """Its mean is of a mixture (seed 0's short first look among full episodes): it outranks nothing, it is not
+    paired with its baseline (nor is a variant with it), and the table names the setting."""
+    from orchestrator.tracking import TAG_VARIANT, TrialRun
+
+    def run(variant, seed, value, max_steps="None"):
+        params = {"method": "mpc", "task": "halfcheetah_running", "seed": str(seed), "max_steps": max_steps}
+        return TrialRun(f"{variant}{seed}", f"k{variant}{seed}", FINISHED, "n", params, {TAG_VARIANT: variant},
+                        {"mean_return": value})  # fmt: skip
+
+    base = [run("base", s, 5000.0 + s) for s in range(3)]
+    mixed = [run("ours", 0, 9000.0, max_steps="100"), run("ours", 1, 5100.0), run("ours", 2, 5200.0)]
+    summary = report.summarize(base + mixed, "episode_return", references=[], pairing=report.Pairing(("base",), ()))
+    groups = {g.variant: g for g in summary.groups}
+    assert groups["ours"].mixed == ("max_steps",) and groups["ours"].paired is None
+    assert summary.groups[summary.best] is groups["base"]  # the mixture's mean is higher
+    assert "(runs differ in max_steps)" in report.format_table(summary)
+    swapped = {"base": "ours", "ours": "base"}
+    flipped = [r._replace(tags={TAG_VARIANT: swapped[r.tags[TAG_VARIANT]]}) for r in base + mixed]
+    summary = report.summarize(flipped, "episode_return", references=[], pairing=report.Pairing(("base",), ()))
+    assert {g.variant: g for g in summary.groups}["ours"].paired is None  # its baseline is the mixed one
+    clean = base + [run("ours", s, 5100.0 + s) for s in range(3)]
+    summary = report.summarize(clean, "episode_return", references=[], pairing=report.Pairing(("base",), ()))
+    assert {g.variant: g for g in summary.groups}["ours"].paired is not None
 
 
 def test_a_setting_only_later_runs_log_does_not_make_a_configuration_mixed():
