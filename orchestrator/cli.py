@@ -521,10 +521,11 @@ def _recorded_sweep(tracker, run_id: str) -> dict:
 
 def _reloaded_sweep(tracker, run_id: str):
     """The sweep file recorded on a sweep's run, loaded again (trials keyed by this code, its reference file
-    read); None when it does not load here, e.g. its reference file lies beside a sweep file that is not."""
+    read); None, said on stderr, when it does not load here: its reference file lay beside a sweep file that is
+    not here, or this code no longer accepts or expands it. The report then goes on from what the file names."""
     import tempfile
 
-    from orchestrator.sweep import SweepError, load_sweep
+    from orchestrator.sweep import load_sweep
 
     text = tracker.recorded_sweep(run_id)
     if not text:
@@ -534,7 +535,13 @@ def _reloaded_sweep(tracker, run_id: str):
         path.write_text(text)
         try:
             return load_sweep(path)
-        except (SweepError, OSError):
+        except Exception as error:  # noqa: BLE001 - any failure to plan it again still leaves a report to write
+            first_line = (str(error).strip().splitlines() or [""])[0]
+            print(
+                f"icemlab: the sweep file recorded on this sweep's run does not load here ({type(error).__name__}: "
+                f"{first_line}); the report uses the metric and baselines it names, and counts every finished run",
+                file=sys.stderr,
+            )
             return None
 
 

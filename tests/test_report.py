@@ -934,6 +934,22 @@ def test_a_report_by_name_says_when_the_sweeps_own_reference_cannot_be_read(tmp_
     assert "compared with paper.yaml, which a report by name cannot read" in result.stderr
 
 
+def test_a_report_by_name_goes_on_when_the_recorded_sweep_fails_to_plan_for_any_reason(monkeypatch, capsys):
+    """Not only a refused file or an unreadable reference: whatever loading the recorded sweep raises (a task that
+    no longer builds), the report by name falls back on what the file names, and says why."""
+    from orchestrator import cli as cli_module
+    from orchestrator import sweep as sweep_module
+
+    def fails(path):
+        raise RuntimeError("task 'point_reach' no longer builds\nsecond line")
+
+    monkeypatch.setattr(sweep_module, "load_sweep", fails)
+    store = type("Store", (), {"recorded_sweep": lambda self, run_id: "name: x\ntask: point_reach\n"})()
+    assert cli_module._reloaded_sweep(store, "run") is None
+    err = capsys.readouterr().err
+    assert "does not load here (RuntimeError: task 'point_reach' no longer builds)" in err
+
+
 def test_a_report_by_name_pairs_variants_with_the_recorded_baseline(tmp_path):
     """``icemlab report NAME`` reads the baseline from the sweep file recorded when it ran."""
     flags = {"full": [1, 1, 1, 0], "ablated": [0, 1, 0, 0]}
