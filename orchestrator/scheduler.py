@@ -345,20 +345,24 @@ class SweepScheduler:
                     self._refuse_mixed_physics(runs)
                 if previous.status == RUNNING:
                     self._record_a_lost_driver(previous, runs)
+                # Known before it is reopened: a store failing half-way through (after the status is RUNNING) is
+                # then recorded on the run and the run closed, not left RUNNING for the next resume to take for a
+                # lost driver.
+                self._parent_id = previous.run_id
                 self.tracker.reopen_sweep(
                     previous.run_id, self.loaded.file_hash, len(self.loaded.trials), self.loaded.text
                 )
-                self._parent_id = previous.run_id
                 return runs
         self._parent_id = self.tracker.start_sweep(
             self.experiment,
             self.sweep.name,
             self.loaded.file_hash,
-            self.loaded.text,
+            None,  # logged below, once the run's id is held: a failure or Ctrl-C while it is logged closes the run
             self.sweep.tracking.tags,
             icemlab_version(),
             len(self.loaded.trials),
         )
+        self.tracker.record_sweep_file(self._parent_id, self.loaded.text)
         return []
 
     def _record_a_lost_driver(self, sweep_run, trial_runs) -> None:

@@ -352,12 +352,14 @@ class Tracker:
         experiment: str,
         sweep_name: str,
         file_hash: str,
-        yaml_text: str,
+        yaml_text: str | None,
         tags: dict[str, str],
         version: str,
         planned_trials: int | None = None,
     ) -> str:
-        """Create the parent run of a sweep execution; returns its id."""
+        """Create the parent run of a sweep execution; returns its id. The sweep file is logged with it, or, when
+        ``yaml_text`` is None, by :meth:`record_sweep_file` once the caller holds the id (so that a store failing,
+        or a Ctrl-C, in between finds a run it can close)."""
         if planned_trials is not None:
             tags = {**tags, TAG_PLANNED_TRIALS: str(planned_trials)}
         experiment_id = self.experiment_id(experiment)
@@ -374,8 +376,13 @@ class Tracker:
                 **tags,
             },
         )
-        self.client.log_text(run.info.run_id, yaml_text, "sweep.yaml")
+        if yaml_text is not None:
+            self.record_sweep_file(run.info.run_id, yaml_text)
         return run.info.run_id
+
+    def record_sweep_file(self, run_id: str, yaml_text: str) -> None:
+        """The sweep file a sweep's run runs (what `icemlab report NAME` plans from)."""
+        self.client.log_text(run_id, yaml_text, "sweep.yaml")
 
     def reopen_sweep(self, run_id: str, file_hash: str, planned_trials: int, yaml_text: str | None = None) -> None:
         """Mark a parent run RUNNING again for a resume; an earlier session's driver error is history. A sweep
@@ -386,7 +393,7 @@ class Tracker:
             if recorded is not None and recorded != yaml_text:
                 self.client.log_text(run_id, recorded, f"sweep_history/sweep_{_now_ms()}.yaml")
             if recorded != yaml_text:
-                self.client.log_text(run_id, yaml_text, "sweep.yaml")
+                self.record_sweep_file(run_id, yaml_text)
         self.client.update_run(run_id, status=RUNNING)
         tags = self.client.get_run(run_id).data.tags
         for tag in (TAG_ERROR, TAG_ERROR_CLASS):

@@ -714,6 +714,57 @@ def test_ctrl_c_pressed_again_while_the_runs_are_closed_lets_the_closing_finish(
     assert sweep_runs(tracker.uri, "impatient")[0].status == KILLED
 
 
+def test_a_store_failing_while_a_sweep_is_reopened_leaves_it_failed_with_the_error_not_running(tmp_path, local_ray):
+    """--resume reopens the sweep's run (RUNNING again), then the store refuses a tag: the error is recorded on the
+    run and the run closed FAILED, rather than left RUNNING for the next resume to take for a lost driver."""
+    from orchestrator.tracking import FAILED, TAG_DRIVER, TAG_ERROR_CLASS
+
+    sweep = toy_sweep(tmp_path, "reopen_fails")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("reopen_fails", "reopen_fails", "hash", sweep.read_text(), {}, "dev")
+    tracker.end_sweep(parent, KILLED, {}, interrupted=True)
+    set_tag = tracker.client.set_tag
+
+    def refuses_the_driver_tag(run_id, key, value):
+        if key == TAG_DRIVER:
+            raise OSError("store refused")
+        return set_tag(run_id, key, value)
+
+    tracker.client.set_tag = refuses_the_driver_tag
+    with pytest.raises(OSError):
+        SweepScheduler(load_sweep(sweep), tracker, resume=True).run()
+    tracker.client.set_tag = set_tag
+    run = tracker.client.get_run(parent)
+    assert run.info.status == FAILED and run.data.tags[TAG_ERROR_CLASS] == "driver_error"
+
+
+@pytest.mark.parametrize("cut", ["store error", "Ctrl-C twice"])
+def test_a_sweep_whose_file_could_not_be_logged_as_it_opened_is_closed_not_left_running(tmp_path, local_ray, cut):
+    """The sweep's run exists, and logging its sweep file fails (the store refuses it, or an impatient user presses
+    Ctrl-C twice): the run is closed (FAILED with the error, or KILLED), not left RUNNING for the next resume to
+    take for a lost driver."""
+    from orchestrator.tracking import FAILED
+
+    sweep = toy_sweep(tmp_path, f"file_cut_{cut[:5]}")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    log_text = tracker.client.log_text
+
+    def cut_short(run_id, text, artifact_file):
+        if artifact_file == "sweep.yaml":
+            if cut == "store error":
+                raise OSError("store refused")
+            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)
+        return log_text(run_id, text, artifact_file)
+
+    tracker.client.log_text = cut_short
+    with pytest.raises(OSError if cut == "store error" else KeyboardInterrupt):
+        SweepScheduler(load_sweep(sweep), tracker).run()
+    tracker.client.log_text = log_text
+    parent, _ = sweep_runs(tracker.uri, f"file_cut_{cut[:5]}")
+    assert parent.status == (FAILED if cut == "store error" else KILLED)
+
+
 def test_workers_lost_in_a_round_cut_short_by_ctrl_c_are_recorded(tmp_path):
     """Ctrl-C ends a round whose report never comes: the workers Ray restarted in it (stateless ones, and stateful
     ones the runner recovered) are read from the actor table before the actors go, and recorded."""
