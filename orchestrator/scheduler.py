@@ -691,7 +691,7 @@ class SweepScheduler:
                 attempt.ref = runner.run_round.remote(0)
             return None
         if attempt.phase == "restoring":
-            if int(value) >= state.total_rounds:
+            if self._restored_after_the_last_round(state, int(value)):
                 # The driver died after the last checkpoint and before the run was closed: the summary was
                 # written before that checkpoint, so closing the run is all that is left.
                 return self._close_finished(attempt)
@@ -731,7 +731,8 @@ class SweepScheduler:
             # last checkpoint was written would keep the final model nowhere. A driver killed before the
             # checkpoint is complete runs the last round again on --resume (the summary is kept once); one killed
             # after it restores that checkpoint and only closes the run.
-            self.tracker.record_summary(state.run_id, dict(round_report.summary) | self._cost(state, attempt))
+            summary = dict(round_report.summary) | self._cost(state, attempt)
+            self.tracker.record_summary(state.run_id, summary, last_round=round_report.index)
         self.tracker.save_checkpoint(state.run_id, round_report.index, data)
         state.bad_checkpoints.discard(round_report.index)  # written anew: the refused one is gone
         state.rounds_done = max(state.rounds_done, round_report.index + 1)
@@ -742,6 +743,13 @@ class SweepScheduler:
                 return "failed"
             return None
         return self._close_finished(attempt)
+
+    def _restored_after_the_last_round(self, state: TrialState, next_round: int) -> bool:
+        """Whether a restored checkpoint is the one written after the trial's last round: the round its summary was
+        written at (a program may end before its planned rounds), else the last planned one. A summary of a later
+        round than the checkpoint's means the last checkpoint was never written: that round runs again."""
+        summarised = self.tracker.summarised_round(state.run_id)
+        return next_round >= (summarised + 1 if summarised is not None else state.total_rounds)
 
     def _close_finished(self, attempt: Attempt) -> str:
         """End a trial whose last round is logged, summarised and checkpointed: its run FINISHED."""

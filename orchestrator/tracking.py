@@ -629,15 +629,26 @@ class Tracker:
     def _failure_files(self, run_id: str, prefix: str) -> int:
         return sum(1 for path in self.list_files(run_id, "failures") if path.rsplit("/", 1)[-1].startswith(prefix))
 
-    def record_summary(self, run_id: str, summary: Mapping[str, float]) -> None:
+    def record_summary(self, run_id: str, summary: Mapping[str, float], last_round: int | None = None) -> None:
         """A trial's summary metrics, written once: a second call (a resume that ran the last round again) keeps
-        the first."""
+        the first.
+
+        Args:
+            last_round: the round that ended the trial, kept in the tag (:meth:`summarised_round`).
+        """
         if TAG_SUMMARY in self.client.get_run(run_id).data.tags:
             return
         now = _now_ms()
         metrics = [Metric(k, float(v), now, 0) for k, v in summary.items()]
+        value = "1" if last_round is None else f"round {last_round}"
         # One batch with its tag: a driver killed while it is sent leaves either all of it or none.
-        self.client.log_batch(run_id, metrics=metrics, tags=[RunTag(TAG_SUMMARY, "1")])
+        self.client.log_batch(run_id, metrics=metrics, tags=[RunTag(TAG_SUMMARY, value)])
+
+    def summarised_round(self, run_id: str) -> int | None:
+        """The round whose end the trial's summary was written at; None without a summary, or one written before
+        the tag named its round."""
+        value = self.client.get_run(run_id).data.tags.get(TAG_SUMMARY, "")
+        return int(value.split()[1]) if value.startswith("round ") else None
 
     def end_trial(self, run_id: str, status: str, summary: Mapping[str, float] | None = None) -> None:
         """Close a trial's run: FINISHED with its summary metrics (once, also when a driver died while it closed

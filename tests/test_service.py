@@ -998,6 +998,7 @@ def test_a_stateful_loss_no_call_tripped_over_is_recorded_when_the_trial_finishe
         attempt = Attempt(state, group, phase="running", round_index=3)
         last = RoundReport(3, {"loss": 1.0}, step=3, done=True, summary={"final_loss": 1.0})
         assert scheduler._advance(attempt, (last, b"state", [])) == "finished"
+        assert tracker.summarised_round(state.run_id) == 3  # what a resume after a lost close goes by
     else:  # the driver died after the last checkpoint: the resume restores it and only closes the run
         attempt = Attempt(state, group, phase="restoring", checkpoint_round=3)
         assert scheduler._advance(attempt, 4) == "finished"
@@ -1005,6 +1006,30 @@ def test_a_stateful_loss_no_call_tripped_over_is_recorded_when_the_trial_finishe
     assert state.lost_left == 2
     text = tracker.download(state.run_id, "failures/recovery_001_lost_process.txt", tmp_path / "r").read_text()
     assert "role 'trainer' was lost and Ray restarted it" in text
+
+
+@pytest.mark.parametrize(
+    "summarised, restored, closes",
+    [(1, 2, True), (3, 3, False), (None, 4, True), (None, 3, False)],
+    ids=["ended early, checkpointed", "last checkpoint missing", "planned end", "planned end, checkpoint missing"],
+)
+def test_a_restore_only_closes_a_run_whose_checkpoint_follows_its_summarised_last_round(
+    tmp_path, summarised, restored, closes
+):
+    """The summary names the round that ended the trial: a program that ended before its planned rounds (round 1 of
+    4) and whose driver died as it closed is closed on resume, not run on; a summary of a later round than the
+    restored checkpoint means the last checkpoint was lost, and that round runs again. Without a summary, the
+    planned rounds decide."""
+    from orchestrator.scheduler import Attempt
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "summarised", lost_left=3)
+    if summarised is not None:
+        tracker.record_summary(state.run_id, {"final_loss": 1.0}, last_round=summarised)
+    attempt = Attempt(state, RunnerlessGroup(), phase="restoring", checkpoint_round=restored - 1)
+    outcome = scheduler._advance(attempt, restored)
+    assert (outcome == "finished") is closes
+    if not closes:
+        assert attempt.phase == "running" and attempt.round_index == restored
 
 
 def test_a_stateful_loss_is_recorded_once_whether_rays_table_or_the_runner_tells_first(tmp_path):
