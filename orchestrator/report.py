@@ -39,6 +39,12 @@ EPISODES_SUFFIX = "_episodes"
 success rates, mbrl's final success rate): binomial too."""
 
 
+def is_rate(metric: str) -> bool:
+    """Whether a sweep metric is a rate in [0, 1] (printed with two decimals): mpc's pooled rates and every
+    method's success figure (APEX's policy_success, napsp's eval_success, mbrl's frozen_success, ...)."""
+    return metric in RATE_METRICS or metric.endswith("success")
+
+
 class TrialResult(NamedTuple):
     """One finished trial, reduced to what reports need."""
 
@@ -417,7 +423,7 @@ def _sort_labels(labels: dict[str, str]) -> tuple:
 def _number(value: float, metric: str) -> str:
     if not math.isfinite(value):
         return "-"
-    if metric in RATE_METRICS:
+    if is_rate(metric):
         return f"{value:.2f}"
     return f"{value:.4g}" if abs(value) < 10 else f"{value:.1f}"
 
@@ -440,11 +446,16 @@ def _comparison_text(group: Group) -> str:
         return c.test
     text = f"{c.verdict} ({c.test}, p={c.p_value:.2g})"
     if c.runs_needed:
-        unit = "episode" if group.successes else "run"
-        text += f"; ~{c.runs_needed} {unit}{'' if c.runs_needed == 1 else 's'} to settle"
+        unit = _settle_unit(group)
+        text += f"; ~{c.runs_needed} {unit[:-1] if c.runs_needed == 1 else unit} to settle"
     elif not c.attainable:
         text += f"; no number of runs settles it against {group.reference.runs} published runs"
     return text
+
+
+def _settle_unit(group: Group) -> str:
+    """What a comparison's ``runs_needed`` counts: episodes where the rate test pooled them, else runs."""
+    return "episodes" if group.successes else "runs"
 
 
 def _paired_text(group: Group, summary: Summary) -> str:
@@ -453,7 +464,7 @@ def _paired_text(group: Group, summary: Summary) -> str:
     if group.paired is None:
         return "-"
     name, t = group.paired.baseline, group.paired.test
-    difference = f"{t.difference:+.2f}" if summary.metric in RATE_METRICS else f"{t.difference:+.4g}"
+    difference = f"{t.difference:+.2f}" if is_rate(summary.metric) else f"{t.difference:+.4g}"
     units = f"{t.pairs} {t.unit}{'' if t.pairs == 1 else 's'}"
     if t.discordant is not None:
         # Better and worse by the sweep's mode: a box dropped in fewer episodes is the gain of a min metric.
@@ -516,6 +527,11 @@ def format_table(summary: Summary) -> str:
     sources = sorted({g.reference.source for g in summary.groups if g.reference})
     if sources:
         notes.append("published: " + "; ".join(sources) + "; tests two-sided, 5%")
+    tests = sum(g.comparison is not None and g.comparison.verdict != "untested" for g in summary.groups)
+    if tests > 1:
+        # Each test errs 5% of the time where the figures truly agree: over a whole table some will.
+        notes.append(f"{tests} tests against published figures, each at 5% and not corrected for their number: "
+                     f"about {tests * 0.05:.1f} of them would read below or above by chance alone")  # fmt: skip
     if summary.baselines:
         notes.append("vs baseline: mean difference over the seeds both ran, or over their episodes where each "
                      "starts alike in both; tests two-sided")
@@ -536,7 +552,8 @@ def to_csv(summary: Summary) -> str:
          f"{m}_sem", f"{m}_ci_low", f"{m}_ci_high", f"{m}_iqm", f"{m}_iqm_ci_low", f"{m}_iqm_ci_high", "successes",
          "episodes",
          "seconds_per_step", "published", "published_spread", "published_runs", "published_source", "verdict",
-         "test", "p_value", "runs_to_settle", "best", "paired_baseline", "paired_pairs", f"paired_{m}_difference",
+         "test", "p_value", "runs_to_settle", "runs_to_settle_unit", "best", "paired_baseline", "paired_pairs",
+         f"paired_{m}_difference",
          "paired_test", "paired_p_value", "paired_unit"]
     )  # fmt: skip
 
@@ -556,6 +573,7 @@ def to_csv(summary: Summary) -> str:
              cell(r.value if r else None), cell(r.spread if r else None), r.runs if r and r.runs else "",
              r.source if r else "", c.verdict if c else "", c.test if c else "", cell(c.p_value if c else None),
              c.runs_needed if c and c.runs_needed else ("unattainable" if c and not c.attainable else ""),
+             _settle_unit(g) if c and c.runs_needed else "",
              int(index == summary.best),
              *_paired_cells(g, cell)]
         )  # fmt: skip

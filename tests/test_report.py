@@ -410,6 +410,40 @@ def test_report_marks_a_matching_configuration_consistent_and_a_distant_one_belo
     assert float(rows["icem"]["episode_return_ci_low"]) < float(rows["icem"]["episode_return_mean"])
     assert rows["icem"]["episode_return_iqm"] != ""  # six runs: the IQM is given
     assert rows["icem"]["runs_to_settle"] != "" and rows["cem_mpc"]["runs_to_settle"] == ""
+    # Two tests at 5% each: the table says how many would read below or above by chance.
+    assert "2 tests against published figures, each at 5% and not corrected" in result.stdout
+    assert "about 0.1 of them" in result.stdout
+
+
+def test_one_test_against_the_thesis_gets_no_note_on_the_number_of_tests():
+    runs = [report_run("icem", value) for value in (1.0, 2.0, 1.5)]
+    reference = Reference(task="point_reach", metric="episode_return", value=1.4, source="t", spread=0.5,
+                          spread_kind="std", runs=5)  # fmt: skip
+    table = report.format_table(report.summarize(runs, "episode_return", references=[reference]))
+    assert "consistent" in table and "tests against published figures" not in table
+
+
+def test_a_rate_settles_in_episodes_and_every_success_metric_prints_as_a_rate():
+    """The episodes a pooled rate test needs are named episodes in the table and the CSV; APEX's, napsp's and
+    mbrl's success figures print with two decimals like mpc's."""
+    comparison = statistics.compare_rate(30, 40, 0.81)
+    assert comparison.runs_needed
+    reference = Reference(task="door_sparse", metric="success", value=0.81, source="t")
+    group = report.Group("door_sparse", "mpc", {}, None, {}, [], 0.75, 0.0, statistics.Interval(0.75, 0.6, 0.86),
+                         None, (30, 40), reference, comparison)  # fmt: skip
+    assert f"~{comparison.runs_needed} episodes to settle" in report._comparison_text(group)
+    (row,) = csv.DictReader(io.StringIO(report.to_csv(report.Summary([group], "success", "success_rate", "max", 0))))
+    assert row["runs_to_settle_unit"] == "episodes"
+    returns = statistics.compare_mean(np.array([5180.0, 5240.0, 5290.0, 5330.0, 5390.0]), 5236, 50.0, "std", 50)
+    assert returns.runs_needed
+    on_returns = reference.model_copy(update={"metric": "episode_return"})
+    group = group._replace(successes=None, comparison=returns, reference=on_returns)
+    assert f"~{returns.runs_needed} runs to settle" in report._comparison_text(group)
+    (row,) = csv.DictReader(io.StringIO(report.to_csv(report.Summary([group], "episode_return", "r", "max", 0))))
+    assert row["runs_to_settle_unit"] == "runs"
+    for metric in ("policy_success", "eval_success", "frozen_success", "success"):
+        assert report._number(2 / 3, metric) == "0.67"
+    assert report._number(2 / 3, "episode_return") == "0.6667"
 
 
 def test_one_success_flag_per_run_gets_no_interquartile_mean():
