@@ -196,7 +196,8 @@ class Sweep(_UserModel):
     max_lost_processes: int = Field(20, ge=0)
     """How many lost processes (killed actors or nodes, memory kills, preemption) a trial recovers from before it
     is FAILED: a stateless worker by Ray's restart and retried call, a stateful one from the last completed round,
-    the trial's runner from its last checkpoint."""
+    the trial's runner from its last checkpoint. Each process counts: a lost node spends one for the runner (if it
+    was there) and one per worker of the trial it held."""
     max_trials: int = Field(DEFAULT_MAX_TRIALS, ge=1)
     """Refuse sweeps that expand to more trials than this (guards against runaway grids)."""
     tracking: Tracking = Tracking()
