@@ -132,6 +132,9 @@ class TrialState:
     """Each round's expected wall time relative to the others (Program.round_work); empty: all alike."""
     launched_here: bool = False
     """Whether this driver launched an attempt of the trial (its run is then this driver's to close)."""
+    adopted: bool = False
+    """Whether its run was found RUNNING by this resume, left so by a driver that is gone (its loss is recorded):
+    this driver closes it too if it stops before launching the trial again."""
     closed_here: bool = False
     """Whether this driver ended the trial's run (FINISHED or FAILED)."""
 
@@ -518,6 +521,7 @@ class SweepScheduler:
             )
             if previous is not None:
                 state.run_id = previous.run_id
+                state.adopted = previous.status == RUNNING
                 state.attempts = previous.attempts
                 state.recovered = self.tracker.recoveries(previous.run_id)  # numbered on, not over
                 state.logged_rounds = self.tracker.logged_rounds(previous.run_id)
@@ -950,8 +954,11 @@ class SweepScheduler:
             except Exception:  # Ray itself may be going down with the same signal
                 pass
         problems: list[Exception] = []
-        # A trial whose launch failed before its run was created has no run to close.
-        for state in [s for s in self._states if s.launched_here and not s.closed_here and s.run_id is not None]:
+        # A trial whose launch failed before its run was created has no run to close. An adopted run not launched
+        # again is closed too, rather than left RUNNING under a closed sweep, without a second record of its last
+        # attempt (whose loss the resume recorded).
+        closing = [s for s in self._states if (s.launched_here or s.adopted) and not s.closed_here]
+        for state in [s for s in closing if s.run_id is not None]:
             try:  # on its own: a refused recovery record must not keep the run from being closed
                 self._record_recoveries(state, lost.get(id(state), []))
             except Exception as error:  # noqa: BLE001
@@ -959,7 +966,8 @@ class SweepScheduler:
             try:
                 run = self.tracker.trial_run(state.run_id)
                 if run is not None and run.status == RUNNING:
-                    self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)
+                    if state.launched_here:
+                        self.tracker.record_failure(state.run_id, state.attempts, kind, cause, detail)
                     self.tracker.end_trial(state.run_id, KILLED)
             except Exception as error:  # noqa: BLE001 - the others are still recorded
                 problems.append(error)

@@ -800,6 +800,23 @@ def test_ctrl_c_also_ends_a_trial_waiting_out_a_retrys_backoff(tmp_path):
     assert runs[untouched.run_id].status == RUNNING  # not this session's to close
 
 
+def test_ctrl_c_before_a_resume_relaunches_a_trial_a_lost_driver_left_running_closes_its_run(tmp_path):
+    """A resume adopts the runs a lost driver left RUNNING; stopped before it launches one again (Ctrl-C during
+    start-up, or the trial still queued), it closes that run KILLED instead of leaving it RUNNING under a KILLED
+    sweep, and adds no second record of the attempt whose loss the resume recorded."""
+    sweep = toy_sweep(tmp_path, "adopted")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("adopted", "adopted", "hash", sweep.read_text(), {}, "dev")
+    key = load_sweep(sweep).trials[0].key
+    orphan = tracker.start_trial(parent, key, "orphan", {"seed": 0}, {})  # its driver is gone: still RUNNING
+    tracker.record_failure(orphan, 1, "driver_lost", "the driver ended without closing the run", "")
+    scheduler = SweepScheduler(load_sweep(sweep), tracker, resume=True)
+    scheduler._states = scheduler._pending_states(tracker.trial_runs(parent))
+    scheduler._abort(parent, "interrupted", "interrupted (Ctrl-C)", "")
+    assert tracker.trial_run(orphan).status == KILLED
+    assert [path for path in tracker.list_files(orphan, "failures") if "interrupted" in path] == []
+
+
 def test_a_recorded_driver_counts_as_running_only_while_its_process_lives():
     """The check that refuses a second driver: a live process with the recorded start, not this process, not a
     later process that got the same pid, not a process on another host."""
