@@ -272,8 +272,9 @@ class TrialGroup:
     def stateful_restarts(self) -> dict[str, int]:
         """How often Ray has restarted the workers of each stateful role so far, by role.
 
-        The runner reports each one it recovers; the driver compares when an attempt ends, to record those whose
-        report died with the runner.
+        The runner reports each one it recovers; the driver compares after every round, as a trial finishes and when
+        an attempt ends, to record those no report accounts for (one whose next call was its state loader, one
+        whose report died with the runner).
         """
         return self._restarts(stateful=True)
 
