@@ -855,8 +855,11 @@ class SweepScheduler:
         """Record a failed attempt and decide: "retry" (queued again) or "failed" (the trial is FAILED)."""
         state = attempt.state
         recovered = self._reported_losses(attempt, failure.recovered)  # made in the round before it failed
-        if failure.role is not None:  # the loss this failure is about: recorded as the failure, not as a recovery
-            self._reported_losses(attempt, [str(RoleWorkerLost(failure.role, failure.cause))])
+        # The loss this failure is about is charged as the failed attempt, not as a recovery, unless Ray's table told
+        # of it first (a worker lost between rounds, read at the round's end): that recovery already charged it.
+        charged = False
+        if failure.role is not None:
+            charged = not self._reported_losses(attempt, [str(RoleWorkerLost(failure.role, failure.cause))])
         restarted = self._new_restarts(attempt) + self._unreported(attempt, f"the attempt ended ({failure.kind})")
         self._end_attempt(attempt)  # after the table reads: they need the actors
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
@@ -866,8 +869,8 @@ class SweepScheduler:
         if failure.kind == BAD_CHECKPOINT and attempt.checkpoint_round is not None:
             state.bad_checkpoints.add(attempt.checkpoint_round)
             return "retry"
-        if failure.kind == LOST_PROCESS and state.lost_left > 0:
-            state.lost_left -= 1
+        if failure.kind == LOST_PROCESS and (charged or state.lost_left > 0):
+            state.lost_left -= 0 if charged else 1
             state.not_before = time.monotonic() + state.backoff()
             return "retry"
         if failure.kind == CODE_ERROR and not repeat and state.retries_left > 0:

@@ -1075,6 +1075,31 @@ def test_a_stateful_loss_is_recorded_once_whether_rays_table_or_the_runner_tells
     assert state.lost_left == 2  # two workers and the runner
 
 
+def test_a_failure_about_a_loss_rays_table_told_of_first_does_not_charge_it_again(tmp_path):
+    """A trainer lost between rounds is read from the table at round 0's end (a recovery, charged); round 1 trips
+    over it and its restore fails, so the attempt fails on that same loss: retried, not charged a second time. A
+    second trainer loss the table counts by then is charged, once."""
+    from orchestrator.failures import LOST_PROCESS, Failure
+    from orchestrator.scheduler import Attempt
+    from workers.methods import RoundReport
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "charged_first", lost_left=1)
+    group = RunnerlessGroup(stateful={"trainer": 1})
+    attempt = Attempt(state, group, phase="running", round_index=0)
+    scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", []))
+    assert state.lost_left == 0
+    restore_failed = Failure(LOST_PROCESS, "RoleWorkerLost: trainer", "detail", "sig", role="trainer")
+    assert scheduler._failed(attempt, restore_failed) == "retry" and state.lost_left == 0
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, "charged_twice", lost_left=3)
+    group = RunnerlessGroup(stateful={"trainer": 1})
+    attempt = Attempt(state, group, phase="running", round_index=0)
+    scheduler._advance(attempt, (RoundReport(0, {"loss": 1.0}, step=0), b"state", []))
+    group.stateful = {"trainer": 2}
+    assert scheduler._failed(attempt, restore_failed) == "retry"
+    assert state.lost_left == 1 and state.recovered == 2  # two losses, two charges; the failure is the first's
+
+
 def test_recoveries_in_place_past_the_budget_stop_the_trial_after_the_round(tmp_path):
     """Ray restarts each worker up to the whole budget, so one round can recover more than is left: the trial
     stops once its round is logged and checkpointed, FAILED with the count, not after a later loss."""
