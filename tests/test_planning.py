@@ -182,6 +182,18 @@ def test_a_schedule_given_in_full_records_what_it_spends_as_its_budget():
     assert PlannerConfig.model_validate(table.model_dump()).resolved(task_beta=0.25).budget == 45
 
 
+def test_no_budget_needs_a_full_schedule_and_with_one_keeps_the_trials_key():
+    """``budget: null`` says "no budget": with half a schedule it is refused rather than planned as budget 100's;
+    with iterations and population it means the same config as leaving the budget out (one trial key)."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="without a budget, set both iterations and population"):
+        PlannerConfig(budget=None, iterations=3)
+    full = PlannerConfig(budget=None, iterations=3, population=128)
+    assert full == PlannerConfig(iterations=3, population=128)
+    assert full.resolved(task_beta=2.0).budget == full.resolved(task_beta=2.0).trajectories_per_step()
+
+
 # ------------------------------------------------------------- validation
 @pytest.mark.parametrize(
     "kwargs, field",

@@ -164,10 +164,15 @@ class PlannerConfig(BaseModel):
     @classmethod
     def _fill_switch_defaults(cls, data: Any) -> Any:
         if isinstance(data, dict):
+            no_budget = "budget" in data and data["budget"] is None
             algorithm = data.get("algorithm", "icem")
             preset = PRESETS.get(algorithm)
             if preset is not None:
                 data = {**preset, **{k: v for k, v in data.items() if v is not None}}
+            if no_budget and (data.get("iterations") is None or data.get("population") is None):
+                # "No budget" with half a schedule would silently plan budget 100's: kept, so that
+                # _schedule_is_defined refuses it. With a full schedule the budget records what it spends.
+                data = {**data, "budget": None}
         return data
 
     @field_validator("budget")
