@@ -697,7 +697,9 @@ class SweepScheduler:
         if attempt.phase == "restoring":
             if self._restored_after_the_last_round(state, int(value)):
                 # The driver died after the last checkpoint and before the run was closed: the summary was
-                # written before that checkpoint, so closing the run is all that is left.
+                # written before that checkpoint, so closing the run is all that is left. No round ends here to
+                # read Ray's table: a stateful worker lost before the restore's loader call is read now.
+                self._record_restarts(attempt, "its trial finished")
                 return self._close_finished(attempt)
             attempt.phase, attempt.round_index = "running", int(value)
             attempt.ref = attempt.group.runner.run_round.remote(attempt.round_index)
@@ -758,9 +760,6 @@ class SweepScheduler:
     def _close_finished(self, attempt: Attempt) -> str:
         """End a trial whose last round is logged, summarised and checkpointed: its run FINISHED."""
         state = attempt.state
-        # A stateful worker restarted between calls whose first call was its state loader (a restore handed it its
-        # state) tripped nothing the runner reports: Ray's table is the only record of that loss.
-        self._record_restarts(attempt, "its trial finished")
         self.tracker.end_trial(state.run_id, FINISHED)
         state.closed_here = True
         state.rounds_done = state.total_rounds
@@ -870,7 +869,8 @@ class SweepScheduler:
             state.bad_checkpoints.add(attempt.checkpoint_round)
             return "retry"
         if failure.kind == LOST_PROCESS and (charged or state.lost_left > 0):
-            state.lost_left -= 0 if charged else 1
+            if not charged:
+                state.lost_left -= 1
             state.not_before = time.monotonic() + state.backoff()
             return "retry"
         if failure.kind == CODE_ERROR and not repeat and state.retries_left > 0:
