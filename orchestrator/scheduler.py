@@ -68,6 +68,10 @@ from workers.methods import METHODS, RoleWorkerLost
 POLL_SECONDS = 0.5
 BACKOFF_SECONDS = (1.0, 2.0, 5.0, 10.0, 30.0)
 """Wait before restarting a trial after its n-th lost process (the last value repeats)."""
+TABLE_SETTLE_SECONDS = 0.5
+"""Wait before Ray's actor table is read as an attempt ends. A worker killed moments before (beside the loss the
+attempt failed on, or with the Ctrl-C) is counted by the GCS only once its node has told it, some milliseconds
+later; read at once, the table would miss that loss, and the actors' teardown that follows leaves no later look."""
 
 log = logging.getLogger(__name__)
 
@@ -859,6 +863,7 @@ class SweepScheduler:
         charged = False
         if failure.role is not None:
             charged = not self._reported_losses(attempt, [str(RoleWorkerLost(failure.role, failure.cause))])
+        time.sleep(TABLE_SETTLE_SECONDS)
         restarted = self._new_restarts(attempt) + self._unreported(attempt, f"the attempt ended ({failure.kind})")
         self._end_attempt(attempt)  # after the table reads: they need the actors
         repeat = failure.kind == CODE_ERROR and failure.signature == state.last_signature
@@ -946,6 +951,8 @@ class SweepScheduler:
         its retries), then each run is recorded on its own, so one refused write does not leave the rest RUNNING;
         the first error of the store is raised at the end."""
         lost: dict[int, list[str]] = {}  # workers lost in the rounds cut short, read while the actors exist
+        if self._active:
+            time.sleep(TABLE_SETTLE_SECONDS)  # once for all of them
         for attempt in list(self._active):
             try:
                 ended = f"the attempt ended ({kind})"

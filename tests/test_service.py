@@ -1100,6 +1100,37 @@ def test_a_failure_about_a_loss_rays_table_told_of_first_does_not_charge_it_agai
     assert state.lost_left == 1 and state.recovered == 2  # two losses, two charges; the failure is the first's
 
 
+class LaggingTableGroup(RunnerlessGroup):
+    """A group in whose actor table a second trainer loss shows up ``lag`` seconds after it is made: the GCS
+    counts a killed worker only once its node has told it."""
+
+    def __init__(self, lag: float):
+        super().__init__(stateful={"trainer": 0})
+        self.counted_from = time.monotonic() + lag
+
+    def stateful_restarts(self) -> dict[str, int]:
+        return {"trainer": 1 if time.monotonic() >= self.counted_from else 0}
+
+
+@pytest.mark.parametrize("ending", ["failure", "ctrl-c"])
+def test_a_loss_the_actor_table_counts_moments_after_the_attempt_ends_is_recorded(tmp_path, ending):
+    """A trainer killed just before the attempt ends (beside the runner's loss, or with a Ctrl-C) is in Ray's
+    table only some milliseconds later; the table is read once, before the actors go, so that read waits for it."""
+    from orchestrator.failures import LOST_PROCESS, Failure
+    from orchestrator.scheduler import TABLE_SETTLE_SECONDS, Attempt
+
+    tracker, scheduler, state = started_toy_trial(tmp_path, f"lagging_{ending[:4]}", lost_left=3)
+    attempt = Attempt(state, LaggingTableGroup(lag=TABLE_SETTLE_SECONDS / 2), phase="running")
+    if ending == "failure":
+        runner_lost = Failure(LOST_PROCESS, "ActorDiedError: the runner", "detail", "sig")
+        assert scheduler._failed(attempt, runner_lost) == "retry"
+    else:
+        state.launched_here = True
+        scheduler._active, scheduler._states = [attempt], [state]
+        scheduler._abort(tracker.find_sweep_run(f"lagging_{ending[:4]}", "r").run_id, "interrupted", "Ctrl-C", "")
+    assert history(tracker, state.run_id, "recovered/lost_process") == [(1, 1.0)]
+
+
 def test_recoveries_in_place_past_the_budget_stop_the_trial_after_the_round(tmp_path):
     """Ray restarts each worker up to the whole budget, so one round can recover more than is left: the trial
     stops once its round is logged and checkpointed, FAILED with the count, not after a later loss."""
