@@ -90,14 +90,17 @@ def _label(group: Any) -> str:
 
 
 def _rate_error(point: FrozenPoint, key: str) -> tuple[float, float]:
-    """(below, above) the row's mean rate: +- sem over seeds, or with one seed the Wilson 95% interval over that
-    trial's frozen episodes (a rate over 25 episodes has an error even when no second seed shows it)."""
+    """(below, above) the row's mean rate: the sem over seeds, widened to at least the Wilson 95% interval of
+    all their frozen episodes pooled. A rate over 25 episodes has an error even when no second seed shows it, or
+    when two seeds happen to agree (a zero sem); where the seeds disagree more than their episodes explain, the
+    sem is the wider."""
     mean, sem, n = point.values[key]
     episodes = point.mean("episodes")
-    if n == 1 and episodes and episodes >= 1:
-        interval = statistics.rate_interval(int(round(mean * episodes)), int(episodes))
-        return mean - interval.low, interval.high - mean
-    return sem, sem
+    if not (episodes and episodes >= 1):
+        return sem, sem
+    pooled = int(round(episodes * n))
+    interval = statistics.rate_interval(int(round(mean * pooled)), pooled)
+    return max(sem, mean - interval.low), max(sem, interval.high - mean)
 
 
 def _bars(points: Sequence[FrozenPoint], key: str) -> list[list[float]]:
@@ -147,7 +150,7 @@ def success_figure(summary: Any):
         axis.set_ylabel(name)
         axis.grid(alpha=0.3)
     success_axis.set_ylim(-0.02, 1.02)
-    success_axis.set_title("frozen model: success, +- sem over seeds; one seed: Wilson 95% over its episodes\n"
+    success_axis.set_title("frozen model: success, +- sem over seeds, at least Wilson 95% over their episodes\n"
                            "(thesis Fig. 19a: PETS 0.58, RAZER up to 0.96)", fontsize=9)  # fmt: skip
     return_axis.set_title("frozen model: return, +- sem over seeds (dashed: PETS)", fontsize=9)
     success_axis.legend(fontsize=7)
@@ -216,8 +219,8 @@ def drop_rate_figure(summary: Any, option: str | None = None):
     axis.set_xlabel(option.removeprefix("task_options."))
     axis.set_ylabel(key_used.replace("_", " "))
     axis.set_ylim(-0.02, 1.02)
-    return _finished(figure, axis, "frozen rows: failure rate against the noise, +- sem over seeds; one seed: "
-                     "Wilson 95% (thesis Fig. 19b: RAZER < 0.2)")  # fmt: skip
+    return _finished(figure, axis, "frozen rows: failure rate against the noise, +- sem over seeds, at least "
+                     "Wilson 95% over their episodes (thesis Fig. 19b: RAZER < 0.2)")  # fmt: skip
 
 
 def coverage_figure(summary: Any):

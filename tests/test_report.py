@@ -769,9 +769,17 @@ def test_the_penalty_figure_draws_a_line_per_planner_budget():
     assert lines["noisy_fetch_pick_place icem b50"].get_xdata().tolist() == [0.0, 0.5]
 
 
-def test_a_frozen_row_of_one_seed_has_its_episodes_wilson_interval_not_a_zero_bar():
-    """14 of 25 frozen episodes of one trial: no second seed gives a spread, but the rate has one (Wilson
-    0.37-0.73); with two seeds the bar is the sem over them."""
+@pytest.mark.parametrize(
+    "rates, bar",
+    [
+        ([0.56], (0.371, 0.733)),  # 14 of 25: no second seed gives a spread, but the rate has one
+        ([0.56, 0.56], (0.423, 0.688)),  # two seeds that agree: a zero sem, but 28 of 50 still have a spread
+        ([0.0, 1.0], (0.0, 1.0)),  # seeds far apart: the sem (0.5) is wider than the 25 of 50's Wilson interval
+    ],
+)
+def test_a_frozen_rows_bar_is_at_least_the_wilson_interval_of_its_pooled_episodes(rates, bar):
+    """The bar of a frozen row's rate is the sem over its seeds, widened to at least the Wilson 95% interval of
+    all their episodes (25 each)."""
     from orchestrator import report_mbrl
     from orchestrator.tracking import TrialRun
 
@@ -780,13 +788,11 @@ def test_a_frozen_row_of_one_seed_has_its_episodes_wilson_interval_not_a_zero_ba
                    "frozen/razer_wA_0.1/aleatoric_weight": 0.1}  # fmt: skip
         return TrialRun(f"r{seed}", f"k{seed}", FINISHED, "n", {"method": "mbrl", "seed": str(seed)}, {}, metrics)
 
-    (point,) = report_mbrl.frozen_points(report.summarize([trial(0, 0.56)], "success", references=[]).groups[0].trials)
+    runs = [trial(seed, rate) for seed, rate in enumerate(rates)]
+    (point,) = report_mbrl.frozen_points(report.summarize(runs, "success", references=[]).groups[0].trials)
+    mean = sum(rates) / len(rates)
     below, above = report_mbrl._rate_error(point, "success_rate")
-    assert (0.56 - below, 0.56 + above) == (pytest.approx(0.371, abs=0.002), pytest.approx(0.732, abs=0.002))
-    (two,) = report_mbrl.frozen_points(
-        report.summarize([trial(0, 0.56), trial(1, 0.64)], "success", references=[]).groups[0].trials
-    )
-    assert report_mbrl._rate_error(two, "success_rate") == (pytest.approx(0.04), pytest.approx(0.04))
+    assert (mean - below, mean + above) == (pytest.approx(bar[0], abs=0.002), pytest.approx(bar[1], abs=0.002))
 
 
 def test_noisy_fetch_drop_rates_are_drawn_against_the_noise_one_line_per_penalty(tmp_path):
