@@ -270,7 +270,7 @@ def _group(task, method, labels, variant, setting, members, metric, summary_key,
         mean = interval.estimate
         comparison = statistics.compare_rate(*successes, reference.value, reference.runs) if reference else None
     else:
-        interval = statistics.mean_interval(values)
+        interval = statistics.mean_interval(values, bounds=(0.0, 1.0) if is_rate(metric) else None)
         mean = interval.estimate
         comparison = None
         if reference is not None and len(values):
@@ -635,7 +635,8 @@ def interval_caption(summary: Summary) -> str:
     metric = summary.metric.replace("_", " ")
     if summary.groups and all(g.successes is not None for g in summary.groups):
         return f"{metric} (rate over all episodes, 95% Wilson interval)"
-    return f"{metric} (mean over seeds, 95% interval: Student's t from two seeds on, a bootstrap from 15)"
+    within = ", cut to [0, 1]" if is_rate(summary.metric) else ""
+    return f"{metric} (mean over seeds, 95% interval: Student's t from two seeds on, a bootstrap from 15{within})"
 
 
 def variant_figure(summary: Summary):

@@ -1,15 +1,16 @@
 """How sure a result is, and whether it differs from a published one.
 
-scipy.stats does the estimation and the tests, statsmodels the power
-analysis of means; the power of a rate test is the closed-form normal
-approximation (Cohen's h), which statsmodels' solver fails on for very large
-effects.
+scipy.stats does the estimation, the tests and the power analysis: the power
+of a t-test from the noncentral t distribution, with the fewest runs that reach
+80% found by search over whole numbers of runs (a continuous solver fails, or
+names too few runs, for effects so large that two or three runs would do); the
+power of a rate test from the closed-form normal approximation (Cohen's h).
 
 * Intervals (95%): for returns Student's t interval of the runs' mean below
   ``BOOTSTRAP_MIN_RUNS`` runs and a bootstrap (BCa) from there on (the
   bootstrap of a handful of runs undercovers: about 71% of true means with
   three runs, 86% with five); for success rates the Wilson score interval of
-  the successes; for five runs or more also the interquartile mean (IQM: the mean after trimming
+  the successes (a mean of per-seed rates gets the t interval, cut to [0, 1]); for five runs or more also the interquartile mean (IQM: the mean after trimming
   floor(n/4) runs from each end, as rliable's ``trim_mean`` at 25% does; the middle 50% when n is a
   multiple of 4, 60-71% of 5-7 runs) with a bootstrap interval. rliable itself does not
   import beside this stack (its ``arch`` dependency fails with pandas 3), and
@@ -49,11 +50,11 @@ effects.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
-from scipy import stats
+from scipy import integrate, stats
 
 LEVEL = 0.95
 ALPHA = 0.05
@@ -100,8 +101,13 @@ BOOTSTRAP_MIN_RUNS = 15
 few runs of roughly normal returns, where the bootstrap's does not)."""
 
 
-def mean_interval(values: np.ndarray) -> Interval:
-    """The runs' mean with a 95% interval: Student's t from two runs on, a bootstrap (BCa) from 15."""
+def mean_interval(values: np.ndarray, bounds: tuple[float, float] | None = None) -> Interval:
+    """The runs' mean with a 95% interval: Student's t from two runs on, a bootstrap (BCa) from 15.
+
+    ``bounds`` is the range the true mean lies in (a mean of per-seed success rates: (0, 1)); the interval is
+    cut to it. That keeps its coverage, since the true mean is never outside, and a rate's bar never reads
+    above 1 or below 0 (Student's t over 1.0 and 0.9 reaches 1.59).
+    """
     values = np.asarray(values, dtype=float)
     if len(values) == 0:
         return Interval(math.nan, math.nan, math.nan)
@@ -109,10 +115,13 @@ def mean_interval(values: np.ndarray) -> Interval:
         return Interval(float(values.mean()), math.nan, math.nan)
     if len(values) < BOOTSTRAP_MIN_RUNS:
         low, high = stats.t.interval(LEVEL, len(values) - 1, loc=values.mean(), scale=stats.sem(values))
-        return Interval(float(values.mean()), float(low), float(high))
-    result = stats.bootstrap((values,), np.mean, confidence_level=LEVEL, n_resamples=BOOTSTRAP_RESAMPLES,
-                             random_state=0)  # fmt: skip
-    return Interval(float(values.mean()), float(result.confidence_interval.low), float(result.confidence_interval.high))
+    else:
+        result = stats.bootstrap((values,), np.mean, confidence_level=LEVEL, n_resamples=BOOTSTRAP_RESAMPLES,
+                                 random_state=0)  # fmt: skip
+        low, high = result.confidence_interval.low, result.confidence_interval.high
+    if bounds is not None:
+        low, high = max(float(low), bounds[0]), min(float(high), bounds[1])
+    return Interval(float(values.mean()), float(low), float(high))
 
 
 def iqm(values: np.ndarray) -> float:
@@ -241,17 +250,55 @@ def compare_mean(values: np.ndarray, published: float, spread: float | None, spr
         return Comparison(verdict, test, p_value, None)
     if welch:
         needed = _runs_to_detect_welch(abs(mean - published), std, published_std, runs)
-        return Comparison(verdict, test, p_value, needed, attainable=needed is not None)
-    from statsmodels.stats.power import TTestPower
-
-    effect = abs(mean - published) / std
-    needed = int(math.ceil(TTestPower().solve_power(effect_size=effect, alpha=ALPHA, power=POWER,
-                                                    alternative="two-sided")))  # fmt: skip
-    return Comparison(verdict, test, p_value, needed)
+    else:
+        effect = abs(mean - published) / std
+        needed = _fewest_runs(lambda n: _one_sample_power(effect, n))
+    return Comparison(verdict, test, p_value, needed, attainable=needed is not None)
 
 
 MAX_RUNS_TO_SETTLE = 10**6
 """Beyond this many runs the question is called not settleable by runs."""
+
+
+def _t_power(critical: float, df: float, shift: float) -> float:
+    """Probability that a t statistic with noncentrality ``shift`` falls beyond +-``critical``.
+
+    scipy's noncentral t; where it returns nan (one degree of freedom and a large shift: two runs against a
+    distant published mean), the same probability as T = (Z + shift) / sqrt(V / df), V chi-square on ``df``
+    degrees of freedom: the normal tail probabilities integrated over V.
+    """
+    power = float(stats.nct.sf(critical, df, shift) + stats.nct.cdf(-critical, df, shift))
+    if math.isfinite(power):
+        return power
+
+    def beyond(v: float) -> float:
+        scale = critical * math.sqrt(v / df)
+        return float(stats.norm.sf(scale - shift) + stats.norm.cdf(-scale - shift)) * float(stats.chi2.pdf(v, df))
+
+    return min(1.0, integrate.quad(beyond, 0.0, float(stats.chi2.isf(1e-12, df)), points=[df], limit=200)[0])
+
+
+def _one_sample_power(effect: float, n: int) -> float:
+    """Power of the two-sided one-sample t-test at 5% with ``n`` runs for a true difference of ``effect``
+    standard deviations (noncentral t, n - 1 degrees of freedom, noncentrality effect * sqrt(n))."""
+    return _t_power(stats.t.ppf(1 - ALPHA / 2, n - 1), n - 1, effect * math.sqrt(n))
+
+
+def _fewest_runs(power: Callable[[int], float]) -> int | None:
+    """The fewest runs, at least 2, at which ``power(runs)`` reaches 80%, for a power that grows with the runs;
+    None beyond ``MAX_RUNS_TO_SETTLE``."""
+    low, high = 2, 2
+    while power(high) < POWER:
+        low, high = high, high * 2
+        if high > MAX_RUNS_TO_SETTLE:
+            return None
+    while low < high:
+        middle = (low + high) // 2
+        if power(middle) >= POWER:
+            high = middle
+        else:
+            low = middle + 1
+    return high
 
 
 def _welch_power(difference: float, std: float, n: int, published_std: float, runs: int) -> float:
@@ -260,9 +307,7 @@ def _welch_power(difference: float, std: float, n: int, published_std: float, ru
     own, theirs = std**2 / n, published_std**2 / runs
     error = math.sqrt(own + theirs)
     df = (own + theirs) ** 2 / (own**2 / max(n - 1, 1) + theirs**2 / (runs - 1))
-    critical = stats.t.ppf(1 - ALPHA / 2, df)
-    shift = difference / error
-    return float(stats.nct.sf(critical, df, shift) + stats.nct.cdf(-critical, df, shift))
+    return _t_power(stats.t.ppf(1 - ALPHA / 2, df), df, difference / error)
 
 
 def _runs_to_detect_welch(difference: float, std: float, published_std: float, runs: int) -> int | None:
@@ -270,21 +315,9 @@ def _runs_to_detect_welch(difference: float, std: float, published_std: float, r
     number does (the limit of infinitely many own runs is a one-sample test against the published mean's
     standard error with runs - 1 degrees of freedom)."""
     limit = stats.t.ppf(1 - ALPHA / 2, runs - 1)
-    shift = difference / (published_std / math.sqrt(runs))
-    if stats.nct.sf(limit, runs - 1, shift) + stats.nct.cdf(-limit, runs - 1, shift) < POWER:
+    if _t_power(limit, runs - 1, difference / (published_std / math.sqrt(runs))) < POWER:
         return None
-    low, high = 2, 2
-    while _welch_power(difference, std, high, published_std, runs) < POWER:
-        low, high = high, high * 2
-        if high > MAX_RUNS_TO_SETTLE:
-            return None
-    while low < high:  # the fewest runs with enough power (power grows with the runs)
-        middle = (low + high) // 2
-        if _welch_power(difference, std, middle, published_std, runs) >= POWER:
-            high = middle
-        else:
-            low = middle + 1
-    return high
+    return _fewest_runs(lambda n: _welch_power(difference, std, n, published_std, runs))
 
 
 class PairedTest(NamedTuple):

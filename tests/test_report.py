@@ -178,6 +178,49 @@ def test_apex_rates_are_tested_against_table_9_by_seed_not_by_pooled_episode():
     assert group.comparison.verdict == "consistent" and group.comparison.p_value == pytest.approx(0.053, abs=0.002)
 
 
+@pytest.mark.parametrize("seeds, published", [([0.5, 0.6], 0.99), ([0.0, 1.0], 4.7426), ([0.0, 1.0], 6.0)])
+def test_runs_to_settle_a_one_sample_test_far_from_the_published_mean_reach_80_percent_power(seeds, published):
+    """Two runs 4.9-7.8 of their standard deviations from a mean taken as exact, not significant (one degree of
+    freedom): the power with those two runs is 0.42-0.68 and with three above 0.95, so three runs settle it. Two
+    would be too few, and scipy's noncentral t gives nan there, which must not end the report."""
+    from scipy import stats
+
+    comparison = statistics.compare_mean(np.array(seeds), published, None, None, None)
+    assert comparison.verdict == "consistent" and comparison.runs_needed == 3 and comparison.attainable
+    effect = abs(np.mean(seeds) - published) / np.std(seeds, ddof=1)
+    for runs, enough in ((2, False), (3, True)):  # simulated one-sample t-tests at that many runs
+        draws = np.random.default_rng(runs).normal(effect, 1.0, size=(100_000, runs))
+        t = draws.mean(axis=1) / (draws.std(axis=1, ddof=1) / math.sqrt(runs))
+        power = np.mean(np.abs(t) > stats.t.ppf(0.975, runs - 1))
+        assert (power >= statistics.POWER) == enough
+
+
+def test_runs_to_settle_a_one_sample_test_of_a_small_effect():
+    """Four runs 0.23 of their standard deviation from the published mean: 148 runs (statsmodels' TTestPower
+    solves the same question to 147.3)."""
+    comparison = statistics.compare_mean(np.array([9.0, 10.0, 11.0, 12.0]), 10.2, None, None, None)
+    assert comparison.verdict == "consistent" and comparison.runs_needed == 148
+
+
+def test_a_mean_of_per_seed_rates_has_an_interval_within_0_and_1():
+    """Student's t over two seeds' rates 1.0 and 0.9 reaches 1.59, and over 0.0, 0.04, 0.0 below 0; a rate's
+    interval is cut to [0, 1]. A return's interval is not."""
+    from orchestrator.tracking import TrialRun
+
+    def group(metric, key, values):
+        runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", {"method": "apex", "task": "door_sparse", "seed": str(s)},
+                         {}, {key: v}) for s, v in enumerate(values)]  # fmt: skip
+        (only,) = report.summarize(runs, metric, references=[]).groups
+        return only.interval
+
+    high = group("policy_success", "final_policy_success", [1.0, 0.9])
+    assert high.high == 1.0 and high.low == pytest.approx(0.315, abs=0.001)
+    low = group("policy_success", "final_policy_success", [0.0, 0.04, 0.0])
+    assert low.low == 0.0 and low.high == pytest.approx(0.071, abs=0.001)
+    returns = group("policy_return", "final_policy_return", [1.0, 0.9])
+    assert returns.high == pytest.approx(1.585, abs=0.001)
+
+
 def test_seeds_without_a_value_leave_the_configuration_untested_and_unranked():
     """Rollouts to the threshold of 10 Ours+HER seeds, 7 of which never got there: the 3 that did (9,000-9,400) are
     not "below" section 6.6.2's 11k, and their configuration does not outrank one whose every seed crossed."""
