@@ -26,7 +26,7 @@ THESIS = Path(__file__).parent / "published" / "thesis.yaml"
 class Reference(BaseModel):
     """One published figure."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     task: str
     """The task it is about."""

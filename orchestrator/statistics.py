@@ -49,6 +49,7 @@ power of a rate test from the closed-form normal approximation (Cohen's h).
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
@@ -292,13 +293,7 @@ def _fewest_runs(power: Callable[[int], float]) -> int | None:
         low, high = high, high * 2
         if high > MAX_RUNS_TO_SETTLE:
             return None
-    while low < high:
-        middle = (low + high) // 2
-        if power(middle) >= POWER:
-            high = middle
-        else:
-            low = middle + 1
-    return high
+    return low + bisect.bisect_left(range(low, high + 1), True, key=lambda runs: power(runs) >= POWER)
 
 
 def _welch_power(difference: float, std: float, n: int, published_std: float, runs: int) -> float:

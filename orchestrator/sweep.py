@@ -39,6 +39,7 @@ from orchestrator.references import THESIS, Reference, load_references
 from orchestrator.yaml_problems import (  # noqa: F401 (SweepError and SweepProblem are re-exported)
     SweepError,
     SweepProblem,
+    booleans_for_numbers,
     closest_hint,
     node_line,
     problems_from,
@@ -51,13 +52,16 @@ from workers.planning.config import Algorithm
 from workers.tasks import TASKS, make_task, unknown_option_message, unknown_task_message
 
 DEFAULT_MAX_TRIALS = 1000
+MAX_SEED = 2**31 - 1
+"""The largest seed: every library a trial seeds (numpy, torch, MuJoCo tasks, gymnasium) takes it, and the offsets
+a trial adds to it (per episode, per model version) stay far inside 64 bits."""
 MethodName = Literal[tuple(METHODS)]  # type: ignore[valid-type]
 
 
 class _UserModel(BaseModel):
     """Base of everything a user writes: unknown keys are errors."""
 
-    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
 
 
 class GridParameter(_UserModel):
@@ -87,8 +91,15 @@ class RandomParameter(_UserModel):
         else:
             if self.low is None or self.high is None:
                 raise ValueError(f"a {self.distribution} distribution needs 'low' and 'high'")
+            if not (math.isfinite(self.low) and math.isfinite(self.high) and math.isfinite(self.high - self.low)):
+                raise ValueError(f"low and high must be finite and a finite distance apart: {self.low}, {self.high}")
             if self.low > self.high:
                 raise ValueError(f"low ({self.low}) is above high ({self.high})")
+            if self.distribution == "randint":
+                if not (float(self.low).is_integer() and float(self.high).is_integer()):
+                    raise ValueError(f"a randint distribution needs whole-number bounds, got {self.low}, {self.high}")
+                if max(abs(self.low), abs(self.high)) > 2**62:
+                    raise ValueError(f"randint bounds must be within +-2**62, got {self.low}, {self.high}")
             if self.distribution == "loguniform" and self.low <= 0:
                 raise ValueError("a loguniform distribution needs low > 0")
         return self
@@ -110,6 +121,12 @@ class SeedRange(_UserModel):
     """The first seed."""
     count: int = Field(ge=1)
     """How many seeds."""
+
+    @model_validator(mode="after")
+    def _last_seed_fits(self) -> SeedRange:
+        if self.first + self.count - 1 > MAX_SEED:
+            raise ValueError(f"the last seed, {self.first + self.count - 1}, is above the largest, {MAX_SEED}")
+        return self
 
 
 class Resources(_UserModel):
@@ -212,6 +229,13 @@ class Sweep(_UserModel):
             raise ValueError(unknown_task_message(task))
         return task
 
+    @field_validator("seeds", mode="before")
+    @classmethod
+    def _seeds_are_a_list_or_a_range(cls, seeds: Any) -> Any:
+        if not isinstance(seeds, (list, dict, SeedRange)):
+            raise ValueError(f"seeds are a list, e.g. [0, 1, 2], or a range, e.g. {{first: 0, count: 5}}: {seeds!r}")
+        return seeds
+
     @field_validator("seeds")
     @classmethod
     def _non_negative_seeds(cls, seeds: list[int] | SeedRange) -> list[int] | SeedRange:
@@ -220,6 +244,9 @@ class Sweep(_UserModel):
         negative = [s for s in seeds if s < 0]
         if negative:
             raise ValueError(f"seeds must be >= 0, got {negative[:5]}")
+        too_large = [s for s in seeds if s > MAX_SEED]
+        if too_large:
+            raise ValueError(f"seeds must be at most {MAX_SEED}, got {too_large[:5]}")
         if len(set(seeds)) != len(seeds):
             raise ValueError("seeds must not repeat (a repeated seed would run the same trial twice)")
         return seeds
@@ -311,7 +338,7 @@ def _without_neutral_defaults(settings: Any, path: str = "") -> Any:
 class TrialConfig(BaseModel):
     """Everything that determines a trial's result (resources do not)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
     method: str
     task: str
@@ -455,19 +482,32 @@ def load_sweep(path: str | Path) -> LoadedSweep:
         raise SweepError([SweepProblem(file, 1, "(file)", "empty sweep file; see sweeps/quickstart.yaml")])
     if not isinstance(data, dict):
         raise SweepError([SweepProblem(file, 1, "(file)", f"a sweep is a mapping of keys, got {type(data).__name__}")])
+    misread = _booleans_for_numbers(Sweep, data, (), file, lambda loc: node_line(root, loc))
     try:
         sweep = Sweep.model_validate(data)
     except ValidationError as error:
-        problems = problems_from(error, file, root, Sweep, data=data)
+        flagged = {problem.path for problem in misread}  # pydantic's own complaint about the 0 or 1 it read
+        problems = [p for p in problems_from(error, file, root, Sweep, data=data) if p.path not in flagged] + misread
         problems += _method_problems(data, file, root) if "base" not in {p.path.split(".")[0] for p in problems} else []
         raise SweepError(sorted_problems(problems), unchecked=UNCHECKED_TRIALS) from None
-    problems = _method_problems(data, file, root)
+    problems = misread + _method_problems(data, file, root)
     if problems:
         raise SweepError(sorted_problems(problems), unchecked=UNCHECKED_TRIALS)
     references = _references(sweep, path, root)
     trials = expand(sweep, file, root)
     file_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
     return LoadedSweep(sweep, trials, text, path, file_hash, references)
+
+
+def _booleans_for_numbers(model: type[BaseModel], data: Any, prefix: tuple[Any, ...], file: str,
+                          line: typing.Callable[[tuple[Any, ...]], int]) -> list[SweepProblem]:  # fmt: skip
+    """YAML's true or false written where ``model`` takes a number, as located problems."""
+    problems = []
+    for loc, value in booleans_for_numbers(model, data, prefix):
+        path = ".".join(map(str, loc))
+        message = f"a number is expected, got {str(value).lower()} (YAML reads true and false as booleans)"
+        problems.append(SweepProblem(file, line(loc), path, message))
+    return problems
 
 
 def _references(sweep: Sweep, path: Path, root) -> list[Reference]:
@@ -536,7 +576,9 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
                 problems.append(SweepProblem(file, node_line(root, ("variants", index, key)), str(key), (
                     f"set both by variant {variant.get('name')!r} and by parameters"
                 )))  # fmt: skip
-    roles = (data.get("resources") or {}).get("workers") or {}
+    # A block that is not a mapping is reported by the Sweep model; only its own keys are checked here.
+    resources = data.get("resources")
+    roles = resources.get("workers") if isinstance(resources, dict) else None
     for role in roles if isinstance(roles, dict) else []:
         if role not in program.role_names:
             known = ", ".join(program.role_names) or "none"
@@ -544,8 +586,9 @@ def _method_problems(data: dict[str, Any], file: str, root) -> list[SweepProblem
             message = f"method {method} has no role {role!r}{hint}; its roles: {known}"
             line = node_line(root, ("resources", "workers", role))
             problems.append(SweepProblem(file, line, f"resources.workers.{role}", message))
-    metric = (data.get("metric") or {}).get("name")
-    if metric is not None and metric not in program.metrics:
+    metric_block = data.get("metric")
+    metric = metric_block.get("name") if isinstance(metric_block, dict) else None
+    if isinstance(metric, str) and metric not in program.metrics:
         problems.append(SweepProblem(file, node_line(root, ("metric", "name")), "metric.name", (
             f"method {method} reports no metric {metric!r}{closest_hint(str(metric), program.metrics)}; "
             f"its metrics: {', '.join(program.metrics)}"
@@ -670,7 +713,7 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
         return node_line(root, ("base", *path.split(".")))
 
     task = config["task"]
-    if task not in TASKS:
+    if not isinstance(task, str) or task not in TASKS:
         problems.append(SweepProblem(file, blame("task"), "task", unknown_task_message(str(task))))
         return None
     problem = program.task_problem(TASKS[task])
@@ -696,8 +739,21 @@ def _resolve_trial(method: str, config, sources, file, root, problems) -> TrialC
             problems.append(SweepProblem(file, blame(path), path, message))
 
     settings = config["settings"]
+    options = settings.get("task_options")
+    if options is not None and not (isinstance(options, dict) and all(isinstance(k, str) for k in options)):
+        message = f"task_options is a mapping of option names to values, e.g. {{noise_std: 2.0}}, got {options!r}"
+        problems.append(SweepProblem(file, blame("task_options"), "task_options", message))
+        return None
+    def located(loc: tuple[Any, ...]) -> int:
+        return blame(".".join(map(str, loc)))
+
+    misread = _booleans_for_numbers(program.Settings, settings, (), file, located)
+    misread += _booleans_for_numbers(TASKS[task].Options, options, ("task_options",), file, located)
+    if misread:
+        problems.extend(misread)
+        return None
     try:
-        task_instance = make_task(task, settings.get("task_options"))
+        task_instance = make_task(task, options)
     except ValidationError as error:
         report(error, "task_options", task_options=True)
         return None

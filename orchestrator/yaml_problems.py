@@ -11,7 +11,7 @@ import difflib
 import re
 import types
 import typing
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -56,6 +56,67 @@ def submodel(annotation: Any) -> type[BaseModel] | None:
         return models[0] if len(models) == 1 else None
     return None
 
+
+
+def _leaves(annotation: Any) -> list[Any]:
+    """The alternatives of an annotation: the members of a union (``int | None``), unwrapped from ``Annotated``."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _leaves(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return [leaf for arg in typing.get_args(annotation) for leaf in _leaves(arg)]
+    return [annotation]
+
+
+def _number_only(annotation: Any) -> bool:
+    """Whether a field takes numbers but not booleans (nor anything at all)."""
+    leaves = _leaves(annotation)
+    kinds = {type(v) for leaf in leaves if typing.get_origin(leaf) is typing.Literal for v in typing.get_args(leaf)}
+    kinds |= {leaf for leaf in leaves if isinstance(leaf, type)}
+    return bool(kinds & {int, float}) and bool not in kinds and Any not in leaves
+
+
+def _element_annotation(annotation: Any, index: int, length: int) -> Any:
+    """What the ``index``-th of ``length`` items of a list written for ``annotation`` is validated as, or Any."""
+    for leaf in _leaves(annotation):
+        origin, args = typing.get_origin(leaf), typing.get_args(leaf)
+        if origin in (list, tuple, set, frozenset, Sequence):
+            if origin is tuple and args and args[-1] is not Ellipsis:
+                return args[index] if len(args) == length else Any
+            return args[0] if args else Any
+    return Any
+
+
+def booleans_for_numbers(model: type[BaseModel], data: Any, loc: tuple[Any, ...] = ()) -> list[tuple[tuple, bool]]:
+    """Where ``data``, written for ``model``, has YAML's true or false in a field that takes numbers.
+
+    Pydantic's lax mode reads them as 1 and 0 without a word (``episodes: true`` would run one episode); each is
+    returned as (location, value) for a located problem. Nested models, lists and mappings are walked.
+    """
+    found: list[tuple[tuple, bool]] = []
+
+    def walk(annotation: Any, value: Any, where: tuple[Any, ...]) -> None:
+        inner = submodel(annotation)
+        if inner is not None and isinstance(value, dict):
+            found.extend(booleans_for_numbers(inner, value, where))
+        elif isinstance(value, bool):
+            if _number_only(annotation):
+                found.append((where, value))
+        elif isinstance(value, list):
+            for index, item in enumerate(value):
+                walk(_element_annotation(annotation, index, len(value)), item, (*where, index))
+        elif isinstance(value, dict):
+            mappings = [leaf for leaf in _leaves(annotation) if typing.get_origin(leaf) is dict]
+            if mappings and len(typing.get_args(mappings[0])) == 2:
+                for key, item in value.items():
+                    walk(typing.get_args(mappings[0])[1], item, (*where, key))
+
+    if isinstance(data, dict):
+        for key, value in data.items():
+            field = model.model_fields.get(key) if isinstance(key, str) else None
+            if field is not None:
+                walk(field.annotation, value, (*loc, key))
+    return found
 
 
 def node_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int:
@@ -162,6 +223,9 @@ def problems_from(
             message = f"unknown key{_did_you_mean(model, loc, str(loc[-1]))}"
         elif item["type"] == "missing":
             message = "required key is missing"
+        elif item["type"] in ("model_type", "model_attributes_type", "dict_type"):
+            # Pydantic's text names the model class ("... or instance of Metric"), which a sweep's author never wrote.
+            message = f"expected a mapping of keys (key: value), got {item['input']!r}"
         loc = tuple(prefix) + loc
         path = ".".join(str(p) for p in loc) or "(file)"
         problems.append(SweepProblem(file, node_line(root, loc), path, message))

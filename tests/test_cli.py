@@ -154,6 +154,98 @@ BAD_SWEEPS = {
         (2, "task"),
         "method mbrl plans on a learned model of a chapter-5 task",
     ),
+    "metric_not_a_mapping": (
+        "name: x\ntask: point_reach\nmetric: episode_return\n",
+        (3, "metric"),
+        "expected a mapping of keys (key: value), got 'episode_return'",
+    ),
+    "resources_not_a_mapping": ("name: x\ntask: point_reach\nresources: 4\n", (3, "resources"), "expected a mapping"),
+    "metric_name_a_list": ("name: x\ntask: point_reach\nmetric: {name: [success]}\n", (3, "metric.name"), "string"),
+    "variant_task_a_list": (
+        "name: x\ntask: point_reach\nvariants:\n  - {name: a, task: [door]}\n",
+        (4, "task"),
+        "unknown task \"['door']\"",
+    ),
+    "variant_algorithm_a_list": (
+        "name: x\ntask: point_reach\nvariants:\n  - {name: a, algorithm: [cem]}\n",
+        (4, "planner.algorithm"),
+        "Input should be 'icem', 'cem', 'cem_mpc' or 'cem_pets'",
+    ),
+    "variant_task_options_a_list": (
+        "name: x\ntask: halfcheetah_running\nvariants:\n  - {name: a, task_options: [flip_penalty]}\n",
+        (4, "task_options"),
+        "task_options is a mapping of option names to values",
+    ),
+    "task_option_named_by_a_number": (
+        "name: x\ntask: halfcheetah_running\nvariants:\n  - name: a\n    task_options: {1: 2}\n",
+        (5, "task_options"),
+        "task_options is a mapping of option names to values",
+    ),
+    "random_range_to_infinity": (
+        "name: x\ntask: point_reach\nparameters:\n"
+        "  planner.sigma_init: {distribution: uniform, low: 0.1, high: .inf}\n",
+        (4, "parameters.planner.sigma_init.high"),
+        "finite number",
+    ),
+    "random_range_wider_than_a_float": (
+        "name: x\ntask: point_reach\nparameters:\n"
+        "  planner.sigma_init: {distribution: uniform, low: -1.0e308, high: 1.0e308}\n",
+        (4, "parameters.planner.sigma_init"),
+        "low and high must be finite and a finite distance apart",
+    ),
+    "randint_beyond_64_bits": (
+        "name: x\ntask: point_reach\nparameters:\n  planner.horizon: {distribution: randint, low: 1, high: 1.0e30}\n",
+        (4, "parameters.planner.horizon"),
+        "randint bounds must be within +-2**62",
+    ),
+    "randint_of_fractions": (
+        "name: x\ntask: point_reach\nparameters:\n  planner.horizon: {distribution: randint, low: 1.5, high: 9}\n",
+        (4, "parameters.planner.horizon"),
+        "whole-number bounds",
+    ),
+    "budget_beyond_a_million": (
+        "name: x\ntask: point_reach\nbase:\n  planner: {budget: 123456789}\n",
+        (4, "base.planner.budget"),
+        "less than or equal to 1000000",
+    ),
+    "infinite_setting": (
+        "name: x\ntask: point_reach\nbase:\n  planner: {sigma_init: .inf}\n",
+        (4, "base.planner.sigma_init"),
+        "finite number",
+    ),
+    "nan_task_option": (
+        "name: x\ntask: noisy_fetch_pick_place\nbase:\n  task_options: {noise_std: .nan}\n",
+        (4, "task_options.noise_std"),
+        "finite number",
+    ),
+    "seed_beyond_31_bits": ("name: x\ntask: point_reach\nseeds: [18446744073709551616]\n", (3, "seeds"), "at most"),
+    "seed_range_beyond_31_bits": (
+        "name: x\ntask: point_reach\nseeds: {first: 2147483600, count: 100}\n",
+        (3, "seeds"),
+        "the last seed, 2147483699, is above the largest, 2147483647",
+    ),
+    "seeds_as_text": (
+        "name: x\ntask: point_reach\nseeds: \"0-4\"\n",
+        (3, "seeds"),
+        "seeds are a list, e.g. [0, 1, 2], or a range, e.g. {first: 0, count: 5}",
+    ),
+    "boolean_episodes": (
+        "name: x\ntask: point_reach\nbase:\n  episodes: true\n",
+        (4, "episodes"),
+        "a number is expected, got true",
+    ),
+    "boolean_grid_value": (
+        "name: x\ntask: point_reach\nparameters:\n  planner.horizon: {values: [10, false]}\n",
+        (4, "planner.horizon"),
+        "a number is expected, got false",
+    ),
+    "boolean_task_option": (
+        "name: x\ntask: noisy_fetch_pick_place\nvariants:\n  - {name: a, task_options.noise_std: true}\n",
+        (4, "task_options.noise_std"),
+        "a number is expected, got true",
+    ),
+    "boolean_seed": ("name: x\ntask: point_reach\nseeds: [0, true]\n", (3, "seeds.1"), "a number is expected"),
+    "boolean_sweep_count": ("name: x\ntask: point_reach\nretries: true\n", (3, "retries"), "a number is expected"),
     "too_many_trials": (
         "name: x\ntask: point_reach\nmax_trials: 5\nparameters:\n"
         "  planner.budget:\n    values: [50, 100, 150]\nseeds: [0, 1]\n",

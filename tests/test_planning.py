@@ -118,6 +118,30 @@ def test_unlisted_budget_gets_a_schedule_close_to_it():
     assert abs(config.trajectories_per_step() - 120) <= 3
 
 
+@pytest.mark.parametrize("algorithm", ["icem", "cem_mpc"])
+@pytest.mark.parametrize("given", [{}, dict(iterations=3), dict(population=40), dict(population_decay=2.0, elites=3)])
+def test_the_schedule_search_finds_the_closest_spend_of_every_candidate(algorithm, given):
+    """The schedule is found by bisection over N (or the iterations); trying every candidate in turn, as the
+    definition reads, gives the same schedule for every unlisted budget, ties going to the smaller candidate."""
+    from workers.planning.config import CEM_BUDGETS, CHAPTER_4_BUDGETS, ICEM_BUDGETS, budget_schedule
+
+    listed = ICEM_BUDGETS | CHAPTER_4_BUDGETS | CEM_BUDGETS  # Table 4's own schedules: test_budget_table_4
+
+    def spend(config, iterations, population):
+        update = dict(iterations=iterations, population=population, reevaluate_elites=False)
+        return config.model_copy(update=update).trajectories_per_step()
+
+    for budget in [b for b in range(21, 400, 3) if b not in listed] + [1001, 4001]:
+        config = PlannerConfig(algorithm=algorithm, budget=budget, **given)
+        if "population" in given:
+            candidates = [(i, config.population) for i in range(1, budget + 1)]
+        else:
+            iterations = budget_schedule(algorithm, budget, config)[0]
+            candidates = [(iterations, n) for n in range(max(config.elites, 2), budget + 1)]
+        closest = min(candidates, key=lambda c: (abs(spend(config, *c) - budget), c))
+        assert budget_schedule(algorithm, budget, config) == closest, budget
+
+
 @pytest.mark.parametrize(
     "switched",
     [

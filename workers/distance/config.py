@@ -30,7 +30,7 @@ SKETCH_MODULI: tuple[int, ...] = (999931, 999953, 999959, 999961, 999979, 999983
 class CountSettings(BaseModel):
     """Hash count models N(s, a) and N(s, a, g') (App. E.1, Alg. 6, Table 20 right)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     single_key_dim: int = Field(64, ge=1)
     """Hash key dimension k of N(s, a), used by the temporal loss's uncertainty (Table 20, left column)."""
@@ -53,7 +53,7 @@ class CountSettings(BaseModel):
 class DistanceSettings(BaseModel):
     """The learned distance and its losses (sections 6.3.2-6.5, App. E.3.2, Table 20 left)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     conditioning: Literal["state_action", "state"] = "state_action"
     """d(s, a, g) (off-policy, eq. 28) or d(s, g) (DDL, the temporal regression of section 6.3.2)."""
@@ -103,7 +103,7 @@ class DistanceSettings(BaseModel):
 class LearnerSettings(BaseModel):
     """Goal-conditioned SAC or DDPG with HER "future" relabelling (Table 19, section 6.6)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     algorithm: Literal["sac", "ddpg"] = "sac"
     """SAC for every task but Fetch Pick&Place, which uses DDPG (section 6.6)."""
@@ -153,7 +153,7 @@ class LearnerSettings(BaseModel):
 class MethodSettings(BaseModel):
     """Everything one method needs on one task: counts, distance, learner."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     method: Method
     """Which reward the learner optimises (section 6.6)."""

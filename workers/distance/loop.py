@@ -54,7 +54,7 @@ Actor = Callable[[np.ndarray, np.ndarray], np.ndarray]
 class LoopSettings(BaseModel):
     """A neural-APSP run: method, task, schedule, seed, and overrides of the thesis defaults."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     method: Method = "ours_her"
     """sparse_her, ddl_her, offpolicy_ddl_her or ours_her (section 6.6)."""

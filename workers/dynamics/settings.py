@@ -40,7 +40,7 @@ the mean over dimensions undefined; use None for all dimensions)."""
 class EnsembleConfig(BaseModel):
     """Architecture and training of a probabilistic ensemble; defaults are Table 13 (BridgeMaze)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     ensemble_size: int = Field(5, ge=1)
     """Number K of members (ensemble_size, Table 13)."""
@@ -164,7 +164,7 @@ class SafetyBox(BaseModel):
     Unconstrained sides are None (e.g. a ceiling: low = height, high = None).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     dims: tuple[int, ...] = Field(min_length=1)
     """Observation dimensions the box constrains."""
@@ -205,7 +205,7 @@ class SafetyBox(BaseModel):
 class RazerSettings(BaseModel):
     """Uncertainty-aware cost settings of RAZER (section 5.3.5, App. D.1.3); all weights zero is PETS."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     aleatoric_weight: float = Field(0.0, ge=0)
     """w_A of the aleatoric penalty (eq. 26); not published."""

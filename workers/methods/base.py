@@ -29,7 +29,7 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 class MethodSettings(BaseModel):
     """Settings of a method, as a sweep file's ``base`` writes them; every field is sweepable by its dotted path."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     task_options: dict[str, Any] = {}
     """Switches of the task (see `icemlab tasks`), e.g. flip_penalty, velocity_term."""

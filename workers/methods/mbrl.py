@@ -79,7 +79,7 @@ PresetName = Literal["bridge_maze", "noisy_halfcheetah", "small"]
 
 
 class _Settings(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
 
 def _optional_fields(model: type[BaseModel], skip: tuple[str, ...] = ()) -> dict[str, Any]:

@@ -31,7 +31,7 @@ from workers.tasks import GroundTruthTask, make_task
 class GroundTruthEnsembleSettings(BaseModel):
     """Plan on an ensemble of noisy ground-truth simulators with RAZER's cost (App. D.4); w_A = 0 is PETS."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     particles: int = Field(5, ge=1)
     """P, noisy rollouts per action sequence, each with its own draws of the task's noise (not in the thesis)."""

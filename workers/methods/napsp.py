@@ -64,7 +64,7 @@ def _optional_model(model: type, name: str, doc: str) -> type:
         field: (info.annotation | None, FieldInfo.merge_field_infos(info, default=None))
         for field, info in model.model_fields.items()
     }
-    config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
     created = create_model(name, __config__=config, __doc__=doc, **fields)  # type: ignore[call-overload]
     created.__module__ = __name__
     return created

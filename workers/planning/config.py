@@ -9,8 +9,7 @@ any switch can be overridden, which is how the ablations of Fig. 7 are run
 from __future__ import annotations
 
 import bisect
-import itertools
-import math
+from collections.abc import Callable
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
@@ -35,6 +34,8 @@ ICEM_BUDGETS: dict[int, tuple[int, int]] = {
     2000: (8, 480),
     4000: (10, 900),
 }
+MAX_BUDGET = 1_000_000
+"""Far past Table 4's largest budget (4000); bounds the schedule search and what one step may ask for."""
 # Chapter 4's low budget (Tables 9-12): 45 = 25 + 20 trajectories after decay, Table 4's budget-50
 # schedule counted without the shifted elites.
 CHAPTER_4_BUDGETS: dict[int, tuple[int, int]] = {45: (2, 25)}
@@ -102,7 +103,7 @@ sampled, as Table 4 does, and a stochastic evaluator's second draws of kept elit
 class PlannerConfig(BaseModel):
     """A planner of the CEM family; every field is a sweepable parameter."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     algorithm: Algorithm = "icem"
     """Member of the CEM family: icem, cem (Alg. 1), cem_mpc or cem_pets (section 3.1.1). Sets the switch defaults."""
@@ -110,10 +111,10 @@ class PlannerConfig(BaseModel):
     """Size K of the elite-set (Table 5)."""
     bounds: BoundHandling | None = None
     """Action bounds: clip (iCEM), truncate at the bounds (CEM_MPC), or at 2 sigma with sigma capped (CEM_PETS)."""
-    budget: int | None = Field(100, ge=1)
+    budget: int | None = Field(100, ge=1, le=MAX_BUDGET)
     """Trajectories evaluated per environment step; sets iterations and population by Table 4 (given one of them,
-    the other is chosen to spend the budget). Must be >= 2 * elites. Not given with both iterations and
-    population: it then records the trajectories they spend per step."""
+    the other is chosen to spend the budget). Must be >= 2 * elites, at most a million (Table 4 ends at 4000).
+    Not given with both iterations and population: it then records the trajectories they spend per step."""
     iterations: int | None = Field(None, ge=1)
     """CEM-iterations per environment step. Default: from the budget (Table 4); given with a budget, the population
     is chosen to spend it."""
@@ -166,7 +167,8 @@ class PlannerConfig(BaseModel):
         if isinstance(data, dict):
             no_budget = "budget" in data and data["budget"] is None
             algorithm = data.get("algorithm", "icem")
-            preset = PRESETS.get(algorithm)
+            # Not a name (e.g. a list): no preset; the field's own validation says what it takes.
+            preset = PRESETS.get(algorithm) if isinstance(algorithm, str) else None
             if preset is not None:
                 data = {**preset, **{k: v for k, v in data.items() if v is not None}}
             if no_budget and (data.get("iterations") is None or data.get("population") is None):
@@ -280,28 +282,41 @@ def budget_schedule(algorithm: str, budget: int, config: PlannerConfig) -> tuple
     spends_as_tabled = all(getattr(config, name) == preset.get(name, defaults[name]) for name in SPENDING_SWITCHES)
     if config.population is not None:
         # Every CEM-iteration adds at least 2K trajectories: past the budget, more only go further past it.
-        longest = config.model_copy(update=dict(iterations=budget))
-        spends = itertools.accumulate(longest.population_sizes())
-        iterations = 1 + sum(1 for spent in spends if spent < budget)
-        return _closest_spend(config, budget, [(i, config.population) for i in range(1, min(iterations, budget) + 1)])
+        most = min(budget, budget // (2 * config.elites) + 1)
+        return _closest_spend(config, budget, lambda i: (i, config.population), 1, most)
     if budget in table and spends_as_tabled and config.iterations in (None, table[budget][0]):
         return table[budget]
     # Given iterations, or the row of the budget itself when listed, otherwise of the nearest listed below.
     listed = sorted(table)
     iterations = config.iterations or table[listed[max(0, bisect.bisect_right(listed, budget) - 1)]][0]
-    return _closest_spend(config, budget, [(iterations, n) for n in range(max(config.elites, 2), budget + 1)])
+    return _closest_spend(config, budget, lambda n: (iterations, n), max(config.elites, 2), budget)
 
 
-def _closest_spend(config: PlannerConfig, budget: int, schedules: list[tuple[int, int]]) -> tuple[int, int]:
-    """The (iterations, N) among ``schedules`` whose trajectories per step come closest to ``budget`` (the first
-    of equals)."""
-    best, best_gap = None, math.inf
-    for iterations, population in schedules:
+def _closest_spend(
+    config: PlannerConfig, budget: int, schedule: Callable[[int], tuple[int, int]], low: int, high: int
+) -> tuple[int, int]:
+    """The schedule ``schedule(x)``, x in [low, high], whose trajectories per step come closest to ``budget``
+    (the smallest x of equals).
+
+    What a schedule spends never falls as x (its N, or its iterations) grows, so the closest is the first x that
+    reaches the budget or the first x of the spend just below it: two bisections, not a pass over every x (a
+    budget of a million would otherwise try a million schedules).
+    """
+
+    def spend(x: int) -> int:
+        iterations, population = schedule(x)
         # Sampled sequences only: re-evaluated kept elites come on top of a budget (see SPENDING_SWITCHES).
-        trial = config.model_copy(update=dict(iterations=iterations, population=population, reevaluate_elites=False))
-        gap = abs(trial.trajectories_per_step() - budget)
-        if gap < best_gap:
-            best, best_gap = (iterations, population), gap
-    if best is None:
-        raise ValueError(f"budget {budget} is too small for {schedules[0][0] if schedules else 'any'} iterations")
-    return best
+        update = dict(iterations=iterations, population=population, reevaluate_elites=False)
+        return config.model_copy(update=update).trajectories_per_step()
+
+    def first_reaching(target: int) -> int:
+        """The smallest x in [low, high] that spends at least ``target``; high + 1 if none does."""
+        return low + bisect.bisect_left(range(low, high + 1), True, key=lambda x: spend(x) >= target)
+
+    if low > high:
+        raise ValueError(f"budget {budget} is too small for {schedule(low)[0]} iterations")
+    reaching = first_reaching(budget)
+    candidates = [first_reaching(spend(reaching - 1))] if reaching > low else []
+    candidates += [reaching] if reaching <= high else []
+    best = min(candidates, key=lambda x: (abs(spend(x) - budget), x))
+    return schedule(best)

@@ -54,7 +54,7 @@ class ExpertSwitches(BaseModel):
     """The switches and weights of the APEX expert (iCEM_pi with the guided cost); a sweep's ``base`` sets them
     through ``ApexSettings``, which adds them to the method's own fields."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     warm_start: bool = True
     """iCEM_pi warm start: the mean from the policy's rollout at t = 0, the shifted mean's last action from the

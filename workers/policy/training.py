@@ -30,7 +30,7 @@ from workers.reparameterise import rescale_inputs_of
 class PolicySettings(BaseModel):
     """The policy network and its training (thesis Table 11)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
     hidden: list[int] = Field([128, 128, 128], min_length=1)
     """Units of each hidden ReLU layer (Table 11: 3 layers of 128)."""

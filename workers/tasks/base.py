@@ -207,7 +207,7 @@ def copy_model_parameters(dst: mujoco.MjModel, src: mujoco.MjModel) -> None:
 class TaskOptions(BaseModel):
     """Switches of a task's planning cost; a sweep sets them under ``task_options``."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True, use_attribute_docstrings=True)
 
 
 class GroundTruthTask(ABC):
