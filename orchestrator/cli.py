@@ -29,6 +29,27 @@ in-process and MLflow writes to ./mlflow.db.
 """
 
 
+MAX_SEED = 2**31 - 1
+"""As orchestrator.sweep.MAX_SEED (not imported here: it would load every method before --help)."""
+CPUS = os.cpu_count() or 1
+
+
+def _whole(low: int, high: int | None = None, what: str = ""):
+    """An argparse type: a whole number in [low, high], refused with the range it must lie in."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            allowed = f">= {low}" if high is None else f"from {low} to {high}"
+            raise argparse.ArgumentTypeError(f"must be {allowed}{what}, got {value}")
+        return value
+
+    return parse
+
+
 def _add_tracking(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--tracking-uri",
@@ -41,8 +62,9 @@ def _add_plan_options(parser: argparse.ArgumentParser, tracking: bool = True) ->
     if tracking:
         _add_tracking(parser)
     parser.add_argument(
-        "--cores", type=int, default=32, metavar="N", help="also estimate the wall time on a cluster of N CPUs (32)"
-    )
+        "--cores", type=_whole(1), default=32, metavar="N",
+        help="also estimate the wall time on a cluster of N CPUs (32)",
+    )  # fmt: skip
     parser.add_argument("--no-estimate", action="store_true", help="no time estimate (no calibration run)")
 
 
@@ -69,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--resume", action="store_true", help="continue the latest run of this sweep: run only missing trials"
     )
-    run.add_argument("--max-concurrent", type=int, default=None, metavar="N", help="at most N trials at a time")
+    run.add_argument("--max-concurrent", type=_whole(1), default=None, metavar="N", help="at most N trials at a time")
     run.add_argument(
         "--allow-physics-change",
         action="store_true",
@@ -137,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument("run_id", help="the trial's MLflow run id (icemlab status SWEEP --provenance lists them)")
     reproduce.add_argument(
         "--threads",
-        type=int,
+        type=_whole(1, CPUS, " (this machine's CPUs)"),
         default=None,
         help="CPUs per unit of work (default: as the trial ran, which torch-trained methods need to repeat)",
     )
@@ -150,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_tracking(ui)
     ui.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
-    ui.add_argument("--port", type=int, default=5000, help="port (default 5000)")
+    ui.add_argument("--port", type=_whole(1, 65535), default=5000, help="port (default 5000)")
 
     bench = commands.add_parser(
         "bench",
@@ -163,9 +185,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--full", action="store_true", help="the README's tables: HalfCheetah and Humanoid, 20 steps per budget, every method")
     bench.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: halfcheetah_running; with --full also humanoid_standup)")
-    bench.add_argument("--budgets", nargs="+", type=int, default=None, help="budgets (default: 100 300)")
-    bench.add_argument("--steps", type=int, default=None, help="MPC steps measured per task and budget (default 10; 20 with --full)")
-    bench.add_argument("--threads", type=int, default=None, help="rollout threads (default: all CPUs)")
+    bench.add_argument("--budgets", nargs="+", type=_whole(1), default=None, help="budgets (default: 100 300)")
+    bench.add_argument(
+        "--steps", type=_whole(1), default=None,
+        help="MPC steps measured per task and budget (default 10; 20 with --full)",
+    )  # fmt: skip
+    bench.add_argument(
+        "--threads", type=_whole(1, CPUS, " (this machine's CPUs)"), default=None,
+        help="rollout threads (default: all CPUs)",
+    )  # fmt: skip
     bench.add_argument("--no-service", action="store_true", help="skip the service-overhead measurement (--methods still starts a local Ray)")
     bench.add_argument(
         "--methods",
@@ -188,10 +216,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     policy.add_argument("checkpoint", type=Path, help="policy checkpoint (.npz)")
     policy.add_argument("--task", default=None, help="the task to roll it on (default: the checkpoint's)")
-    policy.add_argument("--episodes", type=int, default=1, help="episodes (seeds SEED, SEED+1, ...; default 1)")
-    policy.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
+    policy.add_argument("--episodes", type=_whole(1), default=1, help="episodes (seeds SEED, SEED+1, ...; default 1)")
+    policy.add_argument("--seed", type=_whole(0, MAX_SEED), default=0, help="seed of the first episode (default 0)")
     policy.add_argument(
-        "--steps", type=int, default=None,
+        "--steps", type=_whole(1), default=None,
         help="steps per episode (default: chapter 4's, which APEX trains on: 500 on humanoid_standup, else the task's)",
     )  # fmt: skip
     policy.add_argument("--frames", type=Path, default=None, metavar="PNG", help="write a frame strip here")
@@ -250,17 +278,60 @@ def _load(path: Path):
 
 
 def _missing_sqlite(uri: str) -> bool:
-    """Whether ``uri`` names an embedded store that does not exist (opening it would create it)."""
-    return uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).exists()
+    """Whether ``uri`` names an embedded store that does not exist, or is an empty file (opening it would create
+    the store)."""
+    from orchestrator.tracking import sqlite_path
+
+    database = sqlite_path(uri)
+    return database is not None and (not database.exists() or (database.is_file() and database.stat().st_size == 0))
+
+
+def _output_problem(path: Path, suffix: str | None = None) -> str | None:
+    """Why ``path`` cannot be written, checked before any work is done, or None: a file ending in ``suffix``, or a
+    directory (created with its parents) when ``suffix`` is None."""
+    if suffix is not None:
+        if path.is_dir():
+            return f"{path} is a directory; name a {suffix} file in it"
+        if path.suffix.lower() != suffix:
+            return f"{path} must end in {suffix}"
+        if not path.parent.is_dir():
+            return f"directory {path.parent} does not exist"
+        return None if os.access(path.parent, os.W_OK) else f"cannot write in {path.parent}"
+    if path.exists() and not path.is_dir():
+        return f"{path} exists and is not a directory"
+    existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
+    if not existing.is_dir():
+        return f"{existing} is not a directory"
+    return None if os.access(existing, os.W_OK) else f"cannot write in {existing}"
+
+
+def _refuse_output(path: Path | None, option: str, suffix: str | None = None) -> None:
+    """End the command, before it starts its work, when ``path`` cannot be written."""
+    problem = _output_problem(path, suffix) if path is not None else None
+    if problem:
+        print(f"icemlab: {option}: {problem}", file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT)
+
+
+def _tracker(uri: str | None):
+    """A Tracker on the store ``uri`` (or the default one); a store that cannot be used ends the command with one
+    line saying which, why and where its URI came from."""
+    from orchestrator.tracking import StoreUnavailable, Tracker, tracking_uri_source
+
+    try:
+        return Tracker(uri)
+    except StoreUnavailable as error:
+        print(f"icemlab: {error} (the URI is {tracking_uri_source(uri)})", file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT) from None
 
 
 def _existing_store(uri: str | None):
     """(resolved URI, a Tracker on the store or None if it does not exist yet): plans, reports and status never
     create one."""
-    from orchestrator.tracking import Tracker, resolve_tracking_uri
+    from orchestrator.tracking import resolve_tracking_uri
 
-    uri = resolve_tracking_uri(uri)
-    return uri, None if _missing_sqlite(uri) else Tracker(uri)
+    resolved = resolve_tracking_uri(uri)
+    return resolved, None if _missing_sqlite(resolved) else _tracker(uri)
 
 
 def _print_plan(loaded, args) -> None:
@@ -297,9 +368,9 @@ def cmd_run(args) -> int:
         return 0
     from orchestrator.progress import ProgressDisplay
     from orchestrator.scheduler import PhysicsChangedError, ResourceError, SweepBusyError, SweepScheduler
-    from orchestrator.tracking import KILLED, RUNNING, Tracker
+    from orchestrator.tracking import KILLED, RUNNING
 
-    tracker = Tracker(args.tracking_uri)
+    tracker = _tracker(args.tracking_uri)
     experiment = loaded.sweep.tracking.experiment or loaded.sweep.name
     previous = None if args.resume else tracker.find_sweep_run(experiment, loaded.sweep.name)
     if previous is not None and previous.status in (RUNNING, KILLED):
@@ -431,7 +502,7 @@ def cmd_status(args) -> int:
     name, experiment, loaded = _sweep_name(args.sweep)
     parent = tracker.find_sweep_run(experiment, name) if tracker else None
     if parent is None:
-        print(f"sweep {name!r} has not run in {uri}")
+        print(f"sweep {name!r} has not run in {uri}", file=sys.stderr)
         return 1
     plan = {trial.key for trial in loaded.trials} if loaded else None
     print(f"sweep {name}: {parent.status}, parent run {parent.run_id}; {_trial_counts(parent, tracker, plan)}")
@@ -566,8 +637,10 @@ def _recorded_pairing(recorded: dict):
 def cmd_report(args) -> int:
     from orchestrator.tracking import FINISHED
 
+    _refuse_output(args.output, "--output")
     uri, tracker = _existing_store(args.tracking_uri)
     name, experiment, loaded = _sweep_name(args.sweep)
+    _refuse_output(Path("reports") / name if args.output is None else None, "the default output, reports/NAME")
     parent = tracker.find_sweep_run(experiment, name) if tracker else None
     if parent is None:
         print(f"sweep {name!r} has not run in {uri}; run it with: icemlab run SWEEP.yaml", file=sys.stderr)
@@ -662,11 +735,9 @@ def _sweep_links(uri: str, base: str, newest: int = 5) -> list[tuple[str, str]]:
     """Links that open the newest sweeps' runs in the dashboard (for a store that exists)."""
     if _missing_sqlite(uri):
         return []
-    from orchestrator.tracking import Tracker
-
     return [
         (sweep.name, f"{base}/{RUNS_VIEW.format(path=f'experiments/{sweep.experiment_id}/runs')}")
-        for sweep in Tracker(uri).sweeps()[:newest]
+        for sweep in _tracker(uri).sweeps()[:newest]
     ]
 
 
@@ -736,6 +807,7 @@ def cmd_policy(args) -> int:
     if args.task is not None and args.task not in TASKS:
         print(f"icemlab: {unknown_task_message(args.task)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    _refuse_output(args.frames, "--frames", ".png")
     try:
         result = roll_policy(args.checkpoint, args.task, args.episodes, args.seed, args.steps, args.frames)
     except PolicyCheckpointError as error:
@@ -768,6 +840,10 @@ def cmd_model(args) -> int:
     if not args.checkpoint.is_file():
         print(f"icemlab: no file {args.checkpoint}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    if not os.access(args.checkpoint, os.R_OK):
+        print(f"icemlab: cannot read {args.checkpoint}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    _refuse_output(args.output, "--output", ".png")
     try:
         model = DynamicsEnsemble.load(args.checkpoint)
     except Exception:  # noqa: BLE001 - whatever else the file is, the answer is the same

@@ -63,9 +63,14 @@ def reproduce(tracker: Tracker, run_id: str, cpus: int | None = None) -> Reprodu
             recorded = json.loads(tracker.download(run_id, "trial.json", directory).read_text())
         except Exception as error:  # noqa: BLE001 - any store error means the same to the user
             raise ReproduceError(f"run {run_id} has no trial.json (recorded by icemlab 0.1 on): {error}") from None
+    if not isinstance(recorded, dict) or "method" not in recorded:
+        raise ReproduceError(f"run {run_id}'s trial.json is not a trial's configuration (it names no method)")
     if recorded["method"] not in METHODS:
         raise ReproduceError(f"run {run_id} ran method {recorded['method']!r}, which this icemlab does not have")
-    config = TrialConfig.from_canonical(recorded)
+    try:
+        config = TrialConfig.from_canonical(recorded)
+    except (KeyError, TypeError, ValueError) as error:  # pydantic's ValidationError is a ValueError
+        raise ReproduceError(f"run {run_id}'s trial.json does not load here: {error}") from None
     program = METHODS[config.method]
     if cpus is None:
         cpus = run.threads_per_worker or default_threads()

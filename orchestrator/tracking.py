@@ -169,6 +169,65 @@ def resolve_tracking_uri(uri: str | None) -> str:
     return uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri()
 
 
+def tracking_uri_source(uri: str | None) -> str:
+    """Where :func:`resolve_tracking_uri` took the URI from, for messages about it."""
+    if uri:
+        return "--tracking-uri"
+    return "$MLFLOW_TRACKING_URI" if os.environ.get("MLFLOW_TRACKING_URI") else "the default"
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of an embedded-store URI (``sqlite:///PATH``, without a ``?query``), else None."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return Path(uri.removeprefix("sqlite:///").partition("?")[0])
+
+
+class StoreUnavailable(Exception):
+    """The tracking store cannot be used; the message says which store and why, in one line."""
+
+
+STORE_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql")
+"""Tracking URI schemes of the stores icemlab writes to (MLflow's file store is in maintenance mode)."""
+SERVER_CONNECT_SECONDS = 5.0
+"""How long a tracking server gets to accept a connection before the store is called unreachable (MLflow's own
+client retries for minutes)."""
+
+
+def store_problem(uri: str) -> str | None:
+    """Why the store ``uri`` names cannot be used, found without opening it, or None.
+
+    Caught here rather than from MLflow: a directory or an unreadable file in place of the SQLite database makes
+    MLflow retry for minutes, a server that does not answer likewise, and other schemes fail with a traceback.
+    """
+    scheme = uri.partition(":")[0].split("+")[0]
+    if scheme not in STORE_SCHEMES:
+        return (
+            f"scheme {scheme!r} is not one of {', '.join(STORE_SCHEMES)}; the embedded store is sqlite:///PATH "
+            "(the default: sqlite:///./mlflow.db), a server is http://HOST:PORT"
+        )
+    database = sqlite_path(uri)
+    if database is not None and database.exists():
+        if not database.is_file():
+            return f"{database} is not a file"
+        if not os.access(database, os.R_OK | os.W_OK):
+            return f"{database} cannot be read and written by this user"
+        with open(database, "rb") as file:
+            header = file.read(16)
+        if header and header != b"SQLite format 3\x00":
+            return f"{database} is not an SQLite database"
+    if scheme in ("http", "https"):
+        from urllib.parse import urlsplit
+
+        address = urlsplit(uri)
+        port = address.port or (443 if scheme == "https" else 80)
+        try:
+            socket.create_connection((address.hostname or "", port), timeout=SERVER_CONNECT_SECONDS).close()
+        except OSError as error:
+            return f"no server answers at {address.hostname}:{port} ({error.strerror or error}); start it or fix the URI"
+    return None
+
+
 class SweepRun(NamedTuple):
     """A sweep's parent run, as found in MLflow."""
 
@@ -283,10 +342,20 @@ class Tracker:
     """MLflow access for the service (driver side)."""
 
     def __init__(self, tracking_uri: str | None = None):
+        """Open the store (creating an embedded one that does not exist); :class:`StoreUnavailable` if it cannot be
+        used."""
         self.uri = resolve_tracking_uri(tracking_uri)
-        self.client = MlflowClient(tracking_uri=self.uri)
-        if self.uri.startswith("sqlite:///"):
-            self._create_sqlite_store(Path(self.uri.removeprefix("sqlite:///")))
+        problem = store_problem(self.uri)
+        if problem:
+            raise StoreUnavailable(f"cannot use the MLflow store {self.uri}: {problem}")
+        try:
+            self.client = MlflowClient(tracking_uri=self.uri)
+            database = sqlite_path(self.uri)
+            if database is not None:
+                self._create_sqlite_store(database)
+        except Exception as error:  # noqa: BLE001 - MLflow's and its database drivers' errors alike
+            reason = next((line for line in str(error).splitlines() if line.strip()), type(error).__name__)
+            raise StoreUnavailable(f"cannot use the MLflow store {self.uri}: {reason[:300]}") from error
 
     def _create_sqlite_store(self, database: Path) -> None:
         """Create (or migrate) the embedded store under a file lock.
@@ -316,7 +385,7 @@ class Tracker:
         artifact_location = None
         if self.uri.startswith("sqlite:"):
             # Artifacts beside the database, wherever the command was run from.
-            database = Path(self.uri.removeprefix("sqlite:///"))
+            database = sqlite_path(self.uri)
             artifact_location = (database.parent / "mlruns").resolve().as_uri()
         experiment_id = self.client.create_experiment(name, artifact_location=artifact_location)
         # Show it as a model-training experiment (runs, metrics), not a GenAI one, in MLflow 3's UI.

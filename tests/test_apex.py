@@ -760,6 +760,27 @@ def test_policy_command_rolls_a_checkpoint_and_refuses_another_tasks(tmp_path):
     assert refused.returncode == 2 and "not an APEX policy checkpoint" in refused.stderr
 
 
+@pytest.mark.parametrize("damage", ["no_bias", "bad_version", "unknown_task"])
+def test_a_damaged_policy_checkpoint_is_refused_with_its_reason(damage, tmp_path):
+    """A checkpoint archive that is well formed but lacks an array, carries a version that is no number, or names
+    a task this icemlab does not have: one line saying so, not a KeyError or ValueError from inside the loader."""
+    from workers.policy.evaluate import PolicyCheckpointError, read_checkpoint
+
+    tree = PolicyTrainer(0, obs_dim=6, action_dim=2, task="point_reach").weights().to_tree()
+    if damage == "no_bias":
+        del tree["arrays"]["b1"]
+    elif damage == "bad_version":
+        tree["version"] = "x"
+    else:
+        tree["task"] = "point_reech"
+    path = tmp_path / "policy.npz"
+    path.write_bytes(checkpoint.to_bytes(tree))
+    with pytest.raises(PolicyCheckpointError) as error:
+        read_checkpoint(path, None)
+    expected = "did you mean 'point_reach'" if damage == "unknown_task" else "not an APEX policy checkpoint"
+    assert expected in str(error.value) and str(path) in str(error.value)
+
+
 def test_a_policy_is_rolled_as_long_as_chapter_4s_episodes_by_default(tmp_path):
     """Humanoid standup: APEX trains and evaluates on 500 steps (section 4.4), not the environment's 1000."""
     from workers.policy.evaluate import roll_policy

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 from pathlib import Path
 
 import pytest
@@ -266,6 +267,94 @@ def test_bad_sweeps_give_located_one_line_errors(case, tmp_path):
     assert (first.line, first.path) == (line, path)
     assert fragment in first.message
     assert PROBLEM_LINE.match(str(first)), str(first)
+
+
+def _closed_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.parametrize(
+    "store, fragment",
+    [
+        ("foo://x", "scheme 'foo' is not one of sqlite, http, https"),
+        ("file:///{tmp}/files", "scheme 'file' is not one of"),
+        ("sqlite:///{tmp}/directory.db", "directory.db is not a file"),
+        ("sqlite:///{tmp}/text.db", "text.db is not an SQLite database"),
+        ("http://127.0.0.1:{port}", "no server answers at 127.0.0.1:{port}"),
+    ],
+)
+def test_a_store_that_cannot_be_used_is_named_with_why_and_left_as_it_was(store, fragment, tmp_path):
+    """Before, these were MLflow tracebacks, or minutes of retries (a directory or a silent server)."""
+    (tmp_path / "directory.db").mkdir()
+    (tmp_path / "text.db").write_text("notes\n")
+    port = _closed_port()
+    uri = store.format(tmp=tmp_path, port=port)
+    result = cli("status", "--tracking-uri", uri, cwd=tmp_path, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"icemlab: cannot use the MLflow store {uri}: " in result.stderr
+    assert fragment.format(port=port) in result.stderr
+    assert "(the URI is --tracking-uri)" in result.stderr
+    from_environment = cli("report", "x", cwd=tmp_path, timeout=60, env={"MLFLOW_TRACKING_URI": uri})
+    assert from_environment.returncode == 2 and "(the URI is $MLFLOW_TRACKING_URI)" in from_environment.stderr
+    assert (tmp_path / "text.db").read_text() == "notes\n" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "directory.db", "text.db"
+    ]  # fmt: skip
+
+
+def test_an_empty_file_where_the_store_goes_is_no_store_and_stays_empty(tmp_path):
+    (tmp_path / "empty.db").touch()
+    result = cli("status", "--tracking-uri", f"sqlite:///{tmp_path}/empty.db?timeout=5", cwd=tmp_path, timeout=60)
+    assert result.returncode == 0 and "no sweeps in" in result.stdout
+    assert (tmp_path / "empty.db").stat().st_size == 0
+
+
+def test_a_store_uri_with_a_query_names_the_same_database(tmp_path):
+    from orchestrator.tracking import Tracker, default_tracking_uri
+
+    Tracker(default_tracking_uri(tmp_path)).start_sweep("kept", "kept", "hash", "name: kept\n", {}, "dev")
+    uri = default_tracking_uri(tmp_path) + "?timeout=5"
+    result = cli("status", "kept", "--tracking-uri", uri, cwd=tmp_path, timeout=60)
+    assert "sweep kept: RUNNING" in result.stdout, result.stdout + result.stderr
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["validate", "x.yaml", "--cores", "0"], "argument --cores: must be >= 1, got 0"),
+        (["run", "x.yaml", "--max-concurrent", "-1"], "argument --max-concurrent: must be >= 1, got -1"),
+        (["policy", "p.npz", "--episodes", "0"], "argument --episodes: must be >= 1, got 0"),
+        (["policy", "p.npz", "--seed", "-1"], "argument --seed: must be from 0 to 2147483647, got -1"),
+        (["policy", "p.npz", "--steps", "-5"], "argument --steps: must be >= 1, got -5"),
+        (["reproduce", "r", "--threads", "100000"], "argument --threads: must be from 1 to"),
+        (["ui", "--port", "70000"], "argument --port: must be from 1 to 65535, got 70000"),
+        (["bench", "--budgets", "100", "0"], "argument --budgets: must be >= 1, got 0"),
+        (["policy", "p.npz", "--episodes", "two"], "argument --episodes: expected a whole number, got 'two'"),
+    ],
+)
+def test_numbers_out_of_range_are_refused_before_anything_starts(arguments, message, tmp_path):
+    result = cli(*arguments, cwd=tmp_path, timeout=60)
+    assert result.returncode == 2 and message in result.stderr, result.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_the_work(tmp_path):
+    """The report's directory, the policy's frame strip and the model's map are checked first: before, a report
+    printed its table and a policy rolled its episodes, then ended in a traceback."""
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "model.npz").write_bytes(b"x")
+    report = cli("report", "x", "--output", str(tmp_path / "a_file"), cwd=tmp_path, timeout=60)
+    assert report.returncode == 2 and f"--output: {tmp_path / 'a_file'} exists and is not a directory" in report.stderr
+    below = cli("report", "x", "--output", str(tmp_path / "a_file" / "sub"), cwd=tmp_path, timeout=60)
+    assert below.returncode == 2 and "a_file is not a directory" in below.stderr
+    frames = cli("policy", "p.npz", "--frames", str(tmp_path / "missing" / "f.png"), cwd=tmp_path, timeout=60)
+    assert frames.returncode == 2 and f"--frames: directory {tmp_path / 'missing'} does not exist" in frames.stderr
+    suffix = cli("policy", "p.npz", "--frames", str(tmp_path / "f.txt"), cwd=tmp_path, timeout=60)
+    assert suffix.returncode == 2 and "f.txt must end in .png" in suffix.stderr
+    model = cli("model", "model.npz", "--task", "bridge_maze", "--output", str(tmp_path), cwd=tmp_path, timeout=60)
+    assert model.returncode == 2 and f"--output: {tmp_path} is a directory; name a .png file in it" in model.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "model.npz"]
 
 
 def problems_of(tmp_path, text: str) -> list[tuple[int, str, str]]:

@@ -65,6 +65,15 @@ def test_reproduce_refuses_unknown_and_unfinished_runs(tmp_path):
     assert tracker.trial_run(running).status == "RUNNING"  # nothing changed
 
 
+def test_reproduce_refuses_a_trial_json_that_is_no_trials_configuration(tmp_path):
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("x", "x", "hash", "name: x\n", {}, "dev")
+    run_id = tracker.start_trial(parent, "key", "trial", {}, {}, {"trial.json": json.dumps({"seed": 0})})
+    tracker.end_trial(run_id, FINISHED, {})
+    refused = cli("reproduce", run_id, cwd=tmp_path)
+    assert refused.returncode == 2 and "trial.json is not a trial's configuration" in refused.stderr, refused.stderr
+
+
 def test_reproduce_runs_with_the_thread_count_the_trial_ran_with(tmp_path):
     """Torch-trained figures depend on the thread count, so a reproduction uses the recorded one."""
     sweep = write_sweep(tmp_path, "toy_threads", method="toy", base={"rounds": 2, "steps": 5}, algorithm=None)

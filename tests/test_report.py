@@ -607,7 +607,7 @@ def test_report_of_an_unknown_sweep_changes_nothing(tmp_path):
     assert not (tmp_path / "reports").exists()
     assert not (tmp_path / "mlflow.db").exists()  # nor an empty store
     status = cli("status", "never_ran", cwd=tmp_path)
-    assert status.returncode == 1 and "has not run" in status.stdout
+    assert status.returncode == 1 and "has not run" in status.stderr
     assert not (tmp_path / "mlflow.db").exists()
 
 

@@ -35,20 +35,26 @@ CHAPTER_4_EPISODE_STEPS: dict[str, int] = {"humanoid_standup": 500}
 
 def read_checkpoint(path: str | Path, task: str | None) -> Policy:
     """The policy in ``path``; refuses files that are not policy checkpoints, or of another task than ``task``."""
+    from workers.tasks import TASKS, unknown_task_message
+
     path = Path(path)
     try:
         weights = PolicyWeights.from_bytes(path.read_bytes())
+        policy = Policy(weights)
     except OSError as error:
         raise PolicyCheckpointError(f"{path}: cannot read: {error.strerror or error}") from None
-    except CheckpointError as error:
-        raise PolicyCheckpointError(f"{path}: not an APEX policy checkpoint ({error})") from None
+    except (CheckpointError, KeyError, ValueError, TypeError) as error:  # a damaged or foreign file, whichever way
+        reason = f"{type(error).__name__}: {error}"
+        raise PolicyCheckpointError(f"{path}: not an APEX policy checkpoint ({reason})") from None
+    if weights.task and weights.task not in TASKS:
+        raise PolicyCheckpointError(f"{path}: the checkpoint's task: {unknown_task_message(weights.task)}")
     if task is not None and weights.task and weights.task != task:
         raise PolicyCheckpointError(
             f"{path}: a policy of task {weights.task!r}, not {task!r}; roll it on {weights.task} (drop --task)"
         )
     if not weights.task and task is None:
         raise PolicyCheckpointError(f"{path}: the checkpoint does not name its task; give --task")
-    return Policy(weights)
+    return policy
 
 
 def _render_env(task, steps: int):
