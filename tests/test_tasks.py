@@ -307,3 +307,25 @@ def test_robotics_environments_are_built_with_the_replaced_joint_helpers():
     env = make_task("fetch_pick_place_sparse").make_env()
     env.reset(seed=0)  # places the object through set_joint_qpos
     env.close()
+
+
+def test_mujoco_warnings_go_to_logging_once_and_leave_no_file(tmp_path, monkeypatch, caplog):
+    """HalfCheetah's model uses the deprecated settotalmass: MuJoCo's own handler would append the warning to a
+    MUJOCO_LOG.TXT in the working directory of every run."""
+    import logging
+
+    import mujoco
+
+    from workers.tasks.mujoco_compat import route_warnings_to_logging
+
+    monkeypatch.chdir(tmp_path)
+    route_warnings_to_logging()  # a fresh record of what was logged, for this test
+    xml = (
+        '<mujoco><compiler settotalmass="2"/>'
+        '<worldbody><body><freejoint/><geom size="0.1"/></body></worldbody></mujoco>'
+    )
+    with caplog.at_level(logging.WARNING, logger="mujoco"):
+        for _ in range(2):
+            mujoco.MjModel.from_xml_string(xml)
+    assert len([record for record in caplog.records if "settotalmass" in record.getMessage()]) == 1
+    assert list(tmp_path.iterdir()) == []

@@ -32,7 +32,10 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from workers.tasks.mujoco_compat import route_warnings_to_logging
+
 FULL_PHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+route_warnings_to_logging()  # every process that builds a task: no MUJOCO_LOG.TXT in the user's directory
 
 
 class Frame(NamedTuple):

@@ -21,6 +21,7 @@ degrees of freedom); on MuJoCo before 3.12 the results are identical.
 
 from __future__ import annotations
 
+import logging
 from types import ModuleType
 
 import mujoco
@@ -88,3 +89,21 @@ def patch_joint_helpers(utils: ModuleType | None = None) -> None:
         from gymnasium_robotics.utils import mujoco_utils as utils
     for name, function in REPLACEMENTS.items():
         setattr(utils, name, function)
+
+
+def route_warnings_to_logging() -> None:
+    """Send MuJoCo's warnings to Python's logging (logger ``mujoco``), each distinct text once per process.
+
+    MuJoCo's own handler appends every warning to a MUJOCO_LOG.TXT in the working directory: a stray file in
+    the user's project after any run on HalfCheetah, whose model from gymnasium uses ``settotalmass``, which
+    MuJoCo 3.x and 4 warn is deprecated when they compile it.
+    """
+    logger = logging.getLogger("mujoco")
+    seen: set[str] = set()
+
+    def warn(message: str) -> None:
+        if message not in seen:
+            seen.add(message)
+            logger.warning("MuJoCo: %s", message.strip())
+
+    mujoco.set_mju_user_warning(warn)
