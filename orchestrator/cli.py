@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from workers import MAX_SEED
+
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
@@ -29,8 +31,6 @@ in-process and MLflow writes to ./mlflow.db.
 """
 
 
-MAX_SEED = 2**31 - 1
-"""As orchestrator.sweep.MAX_SEED (not imported here: it would load every method before --help)."""
 CPUS = os.cpu_count() or 1
 
 

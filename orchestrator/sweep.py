@@ -47,14 +47,12 @@ from orchestrator.yaml_problems import (  # noqa: F401 (SweepError and SweepProb
     sorted_problems,
     submodel,
 )
+from workers import MAX_SEED
 from workers.methods import BUILTIN_METHODS, DEFAULT_METHOD, METHODS, MethodSettings, Program, TrialSpec
 from workers.planning.config import Algorithm
 from workers.tasks import TASKS, make_task, unknown_option_message, unknown_task_message
 
 DEFAULT_MAX_TRIALS = 1000
-MAX_SEED = 2**31 - 1
-"""The largest seed: every library a trial seeds (numpy, torch, MuJoCo tasks, gymnasium) takes it, and the offsets
-a trial adds to it (per episode, per model version) stay far inside 64 bits."""
 MethodName = Literal[tuple(METHODS)]  # type: ignore[valid-type]
 
 

@@ -207,10 +207,13 @@ def test_a_mean_of_per_seed_rates_has_an_interval_within_0_and_1():
     interval is cut to [0, 1]. A return's interval is not."""
     from orchestrator.tracking import TrialRun
 
-    def group(metric, key, values):
+    def summary(metric, key, values):
         runs = [TrialRun(f"r{s}", f"k{s}", FINISHED, "n", {"method": "apex", "task": "door_sparse", "seed": str(s)},
                          {}, {key: v}) for s, v in enumerate(values)]  # fmt: skip
-        (only,) = report.summarize(runs, metric, references=[]).groups
+        return report.summarize(runs, metric, references=[])
+
+    def group(metric, key, values):
+        (only,) = summary(metric, key, values).groups
         return only.interval
 
     high = group("policy_success", "final_policy_success", [1.0, 0.9])
@@ -219,6 +222,8 @@ def test_a_mean_of_per_seed_rates_has_an_interval_within_0_and_1():
     assert low.low == 0.0 and low.high == pytest.approx(0.071, abs=0.001)
     returns = group("policy_return", "final_policy_return", [1.0, 0.9])
     assert returns.high == pytest.approx(1.585, abs=0.001)
+    assert "cut to [0, 1]" in report.interval_caption(summary("policy_success", "final_policy_success", [1.0, 0.9]))
+    assert "cut to" not in report.interval_caption(summary("policy_return", "final_policy_return", [1.0, 0.9]))
 
 
 def test_seeds_without_a_value_leave_the_configuration_untested_and_unranked():

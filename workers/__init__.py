@@ -9,6 +9,10 @@ import functools
 import hashlib
 from pathlib import Path
 
+MAX_SEED = 2**31 - 1
+"""The largest trial seed: every library a trial seeds (numpy, torch, MuJoCo tasks, gymnasium) takes it, and the
+offsets a trial adds to it (per episode, per model version) stay far inside 64 bits."""
+
 
 @functools.cache
 def code_fingerprint() -> str:
