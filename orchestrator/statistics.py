@@ -10,7 +10,8 @@ power of a rate test from the closed-form normal approximation (Cohen's h).
   ``BOOTSTRAP_MIN_RUNS`` runs and a bootstrap (BCa) from there on (the
   bootstrap of a handful of runs undercovers: about 71% of true means with
   three runs, 86% with five); for success rates the Wilson score interval of
-  the successes (a mean of per-seed rates gets the t interval, cut to [0, 1]); for five runs or more also the interquartile mean (IQM: the mean after trimming
+  the successes (a mean of per-seed rates gets the t interval, cut to [0, 1]);
+  for five runs or more also the interquartile mean (IQM: the mean after trimming
   floor(n/4) runs from each end, as rliable's ``trim_mean`` at 25% does; the middle 50% when n is a
   multiple of 4, 60-71% of 5-7 runs) with a bootstrap interval. rliable itself does not
   import beside this stack (its ``arch`` dependency fails with pandas 3), and

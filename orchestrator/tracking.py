@@ -224,7 +224,8 @@ def store_problem(uri: str) -> str | None:
         try:
             socket.create_connection((address.hostname or "", port), timeout=SERVER_CONNECT_SECONDS).close()
         except OSError as error:
-            return f"no server answers at {address.hostname}:{port} ({error.strerror or error}); start it or fix the URI"
+            reason = error.strerror or error
+            return f"no server answers at {address.hostname}:{port} ({reason}); start it or fix the URI"
     return None
 
 
