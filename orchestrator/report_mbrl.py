@@ -13,8 +13,8 @@ summarised trial runs.
   caption reads: a fixed w_A, the noise varied).
 
 The frozen rows come from the trials' summary metrics ``frozen/<row>/<key>`` (workers/methods/mbrl.py):
-``pets`` and ``razer_wA_<w>`` rows with ``success_rate``, ``mean_return``, ``falls_rate``,
-``box_drops_rate``, ``aleatoric_weight``.
+``pets``, ``razer_wA_<w>`` and ``razer_wA_<w>_means`` (Var_A read at the mean states) rows with
+``success_rate``, ``mean_return``, ``falls_rate``, ``box_drops_rate``, ``aleatoric_weight``.
 """
 
 from __future__ import annotations
@@ -37,15 +37,24 @@ FAILURE_KEYS = ("box_drops_rate", "falls_rate")
 """Failure rates of frozen rows, in order of preference (Noisy-FetchPickAndPlace drops boxes, BridgeMaze falls)."""
 
 
+MEANS_SUFFIX = "_means"
+"""The row-name suffix of RAZER rows that read Var_A at the mean states (workers/methods/mbrl.py: frozen_rows)."""
+
+
 class FrozenPoint(NamedTuple):
     """One frozen-evaluation row of one configuration, over its trials (seeds)."""
 
     row: str
-    """Row name: ``pets`` or ``razer_wA_<w>``."""
+    """Row name: ``pets``, ``razer_wA_<w>`` or ``razer_wA_<w>_means``."""
     pets: bool
     aleatoric_weight: float
     values: dict[str, tuple[float, float, int]]
     """key -> (mean, sem, trials) over the configuration's trials."""
+
+    @property
+    def aleatoric_states(self) -> str:
+        """Where the row read Var_A: ``means`` for the ``_means`` rows, else ``particles`` (eq. 22)."""
+        return "means" if self.row.endswith(MEANS_SUFFIX) else "particles"
 
     def mean(self, key: str) -> float | None:
         return self.values[key][0] if key in self.values else None
@@ -73,7 +82,7 @@ def frozen_points(trials: Iterable[Any]) -> list[FrozenPoint]:
         pets = bool(values.get("pets", (0.0,))[0]) or row == "pets"
         weight = values.get("aleatoric_weight", (0.0,))[0]
         points.append(FrozenPoint(row, pets, float(weight), values))
-    points.sort(key=lambda p: (not p.pets, p.aleatoric_weight))
+    points.sort(key=lambda p: (not p.pets, p.aleatoric_states, p.aleatoric_weight))
     return points
 
 
@@ -116,23 +125,26 @@ def success_figure(summary: Any):
         return None
     figure, (success_axis, return_axis) = plt.subplots(1, 2, figsize=(11, 4))
     for group, points in groups:
-        razer = [p for p in points if not p.pets and "success_rate" in p.values]
         label = _label(group)
         color = None
-        if razer:
+        for states in ("particles", "means"):  # one line each: the two read Var_A at different states
+            razer = [p for p in points if not p.pets and p.aleatoric_states == states and "success_rate" in p.values]
+            if not razer:
+                continue
+            name = f"RAZER {label}".strip() + (" (Var_A at mean states)" if states == "means" else "")
             line = success_axis.errorbar(
                 [p.aleatoric_weight for p in razer],
                 [p.values["success_rate"][0] for p in razer],
                 yerr=_bars(razer, "success_rate"),
-                marker="o", capsize=3, label=f"RAZER {label}".strip(),
+                marker="o" if states == "particles" else "s", capsize=3, label=name,
             )  # fmt: skip
-            color = line[0].get_color()
+            color = color or line[0].get_color()
             if all("mean_return" in p.values for p in razer):
                 return_axis.errorbar(
                     [p.aleatoric_weight for p in razer],
                     [p.values["mean_return"][0] for p in razer],
                     yerr=[p.values["mean_return"][1] for p in razer],
-                    marker="o", capsize=3, color=color, label=f"RAZER {label}".strip(),
+                    marker="o" if states == "particles" else "s", capsize=3, color=line[0].get_color(), label=name,
                 )  # fmt: skip
         for p in points:
             if p.pets and "success_rate" in p.values:

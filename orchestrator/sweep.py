@@ -305,6 +305,8 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "layout": "wide",
     "unit_quaternion": False,
     "frozen.task_options": {},
+    "aleatoric_states": "particles",
+    "frozen.aleatoric_states": ["particles"],
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name at
 any depth of a method's settings, or by dotted path where the name alone is ambiguous). They are left out of

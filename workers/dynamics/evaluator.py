@@ -68,11 +68,10 @@ class EnsembleEvaluator:
     def propagate(self, observation: np.ndarray, actions: np.ndarray) -> Propagation:
         """The PETSUS propagation of the sequences (for inspection and tests).
 
-        Mean states feed Var_E alone (eq. 24): at w_E = 0 they would change no cost (the particles' random draws
-        do not depend on them) and would double the rows every member evaluates, so they are propagated only when
-        w_E > 0; u_E is then not reported.
+        Mean states are propagated only where a cost reads them (``RazerSettings.propagated_means``); without
+        them u_E is not reported.
         """
-        mean_propagation = self.settings.mean_propagation if self.settings.epistemic_weight > 0 else "none"
+        mean_propagation = self.settings.propagated_means()
         with torch.no_grad():
             return petsus_propagate(
                 self.model,
@@ -83,6 +82,7 @@ class EnsembleEvaluator:
                 self.generator,
                 self.settings.epistemic_terms,
                 self.project,
+                self.settings.aleatoric_states,
             )
 
     def terms(self, observation: np.ndarray, actions: np.ndarray) -> CostTerms:

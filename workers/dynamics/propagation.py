@@ -29,6 +29,11 @@ Uncertainties, per state dimension:
 * Var_A(t+1) = mean over the sequence's particles of the variance the member
   assigned to the particle predicts for it (eq. 22: the mean over members of
   Sigma_k(s~_t, a_t); with balanced TS1 both means coincide for P = multiple of K).
+  ``aleatoric_states="means"`` reads it at the mean states instead: the mean over
+  members of Sigma_k(s_bar^k_t, a_t) (per_member) or Sigma_k(s_bar_t, a_t) (shared).
+  A particle's state carries the noise of every earlier sampled step, so along the
+  horizon the particles spread into states the data never covered, where the
+  predicted variances are large whatever the route; the mean states do not.
 * Var_E(t+1) = Var_k[mu_k(s_bar_t, a_t)] + Var_k[Sigma_k(s_bar_t, a_t)] (eq. 24),
   the empirical (population, divide-by-K) variance over members, taken at each
   member's own mean state in the per_member mode. mu_k is the predicted change, as
@@ -47,7 +52,7 @@ from typing import NamedTuple
 import torch
 
 from workers.dynamics.ensemble import DynamicsEnsemble
-from workers.dynamics.settings import EpistemicTerms, MeanPropagation
+from workers.dynamics.settings import AleatoricStates, EpistemicTerms, MeanPropagation
 
 
 class Propagation(NamedTuple):
@@ -83,6 +88,7 @@ def petsus_propagate(
     generator: torch.Generator | None = None,
     epistemic_terms: EpistemicTerms = "means_and_variances",
     project: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    aleatoric_states: AleatoricStates = "particles",
 ) -> Propagation:
     """Propagate P TS1 particles (and the mean states) of N action sequences through the ensemble.
 
@@ -95,9 +101,12 @@ def petsus_propagate(
         generator: torch generator for the particle noise and the TS1 assignment.
         epistemic_terms: what Var_E sums (see :class:`~workers.dynamics.settings.RazerSettings`).
         project: the task's ``project_states``, applied to every particle and mean state after the clamp.
+        aleatoric_states: where Var_A is read, ``particles`` (eq. 22) or ``means`` (see the module docstring).
     """
     if particles < 1:
         raise ValueError(f"particles must be at least 1, got {particles}")
+    if aleatoric_states == "means" and mean_propagation == "none":
+        raise ValueError("Var_A at the mean states needs mean propagation (per_member or shared)")
 
     def settle(states: torch.Tensor) -> torch.Tensor:
         clamped = model.clamp_states(states)
@@ -156,10 +165,13 @@ def petsus_propagate(
         sampled = settle(particle_in + mu[:, :rows] + var.sqrt() * noise[t])
         torch.index_select(sampled.view(k * rows, d), 0, scatter_rows[t], out=table[:-1])
         states.append(table[:-1].view(n, particles, d).clone())
-        var_a.append(var.view(k * rows, d).index_select(0, scatter_rows[t]).view(n, particles, d).mean(dim=1))
+        if aleatoric_states == "particles":
+            var_a.append(var.view(k * rows, d).index_select(0, scatter_rows[t]).view(n, particles, d).mean(dim=1))
 
         if mean_state is not None:
             mean_mu, mean_var = mu[:, rows:], logvar[:, rows:].exp()  # (K, N, d)
+            if aleatoric_states == "means":
+                var_a.append(mean_var.mean(dim=0))
             spread = population_variance(mean_mu)
             var_e.append(spread + population_variance(mean_var) if epistemic_terms == "means_and_variances" else spread)
             step = mean_mu if mean_propagation == "per_member" else mean_mu.mean(dim=0, keepdim=True)

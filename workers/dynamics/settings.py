@@ -22,6 +22,10 @@ MeanPropagation = Literal["none", "per_member", "shared"]
 EpistemicTerms = Literal["means_and_variances", "means"]
 """What Var_E of eq. 24 measures over the members: their predicted means' and variances' spread, or the means' only."""
 
+AleatoricStates = Literal["particles", "means"]
+"""Where Var_A of eq. 22 is read: at the sampled particle states (as eq. 22 writes it) or at the propagated mean
+states (see RazerSettings.aleatoric_states)."""
+
 UncertaintyReduction = Literal["sum_sqrt", "sqrt_sum", "mean_sqrt"]
 """How sqrt(Var) of eq. 26-27 combines the state dimensions (see workers/dynamics/costs.py)."""
 
@@ -219,6 +223,12 @@ class RazerSettings(BaseModel):
     their predicted variances, as the equation is written; ``means``, the first term alone, the usual
     disagreement measure. The second term is in squared units of the first, and wherever one member's
     log-variance nears its upper bound it outweighs the first many times over (docs/results/razer.md, BridgeMaze)."""
+    aleatoric_states: AleatoricStates = "particles"
+    """Where Var_A is read: ``particles``, the members' predicted variance at the sampled particle states, as eq. 22
+    writes it; ``means``, at the propagated mean states (each member's at its own with per_member mean
+    propagation), free of the sampling noise that compounds along the horizon (section 5.4: "RAZER does not rely
+    on sampling for the aleatoric part"; App. D.2: "predictions of the covariance Sigma(s_t, a_t)"). ``means``
+    needs mean propagation, and the evaluator then propagates the mean states whatever w_E is."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) combines dimensions: sum of per-dim std (default), sqrt of the summed variance, mean std."""
     uncertainty_dims: UncertaintyDims | None = None
@@ -234,9 +244,19 @@ class RazerSettings(BaseModel):
     def _consistent(self) -> RazerSettings:
         if self.epistemic_weight > 0 and self.mean_propagation == "none":
             raise ValueError("epistemic_weight > 0 needs mean propagation (per_member or shared): eq. 24 uses it")
+        if self.aleatoric_states == "means" and self.mean_propagation == "none":
+            raise ValueError("aleatoric_states: means needs mean propagation (per_member or shared)")
         if self.safety_weight > 0 and not self.safety_boxes:
             raise ValueError("safety_weight > 0 needs at least one safety box")
         return self
+
+    def propagated_means(self) -> MeanPropagation:
+        """The mean propagation a rollout needs: the setting where a cost reads the mean states (Var_E of eq. 24
+        for w_E > 0, or Var_A with ``aleatoric_states: means``), else none: they would change no cost (the
+        particles' random draws do not depend on them) and would add K rows per sequence to every member's batch."""
+        if self.epistemic_weight > 0 or self.aleatoric_states == "means":
+            return self.mean_propagation
+        return "none"
 
     @classmethod
     def pets(cls) -> RazerSettings:

@@ -12,7 +12,7 @@ A trial is a program of rounds (workers/methods/base.py):
   shared once -> new, versioned weights, shared once with the planning workers.
 * **Frozen rounds** (``frozen.episodes`` > 0, step = row): the final model
   evaluated without training, one round per row (PETS, then RAZER at each
-  ``frozen.aleatoric_weights``), its episodes fanned out to every planning
+  ``frozen.aleatoric_weights``, for each of ``frozen.aleatoric_states``), its episodes fanned out to every planning
   worker, all reading one shared weights reference (Fig. 19a: "the same
   model ... trained from data collected during a training run with
   w_E = 0.05"). Every row plays the same episode seeds (common random numbers).
@@ -52,6 +52,7 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 from workers.data import EpisodeBuffer, Trajectory
 from workers.dynamics.settings import (
     ENSEMBLE_PRESETS,
+    AleatoricStates,
     PRESET_SHAPES,
     EnsembleConfig,
     EpistemicTerms,
@@ -181,6 +182,10 @@ class RazerCostSettings(_Settings):
     """Var_E of eq. 24: the members' spread of predicted means plus that of predicted variances, as written, or of
     the ``means`` alone (the variances' spread is in squared units and dominates wherever a member's log-variance
     nears its upper bound; docs/results/razer.md, BridgeMaze)."""
+    aleatoric_states: AleatoricStates = "particles"
+    """Where Var_A is read: at the sampled particle states, as eq. 22 writes it, or at the propagated ``means``
+    (free of the sampling noise that compounds along the horizon; section 5.4 says RAZER "does not rely on sampling
+    for the aleatoric part"). ``means`` needs mean propagation, which then runs whatever w_E is."""
     uncertainty_reduction: UncertaintyReduction = "sum_sqrt"
     """How sqrt(Var) of eq. 26-27 combines dimensions: sum of per-dimension std (default), sqrt of the summed
     variance, or mean std."""
@@ -200,6 +205,9 @@ class RazerCostSettings(_Settings):
     def _consistent(self) -> RazerCostSettings:
         if self.epistemic_weight > 0 and self.mean_propagation == "none":
             raise ValueError("epistemic_weight > 0 needs mean propagation (per_member or shared): eq. 24 uses it")
+        if self.aleatoric_states == "means" and self.mean_propagation == "none":
+            raise ValueError("aleatoric_states: means reads Var_A at the mean states: it needs mean_propagation "
+                             "per_member or shared")  # fmt: skip
         return self
 
     def settings(self, task_boxes: tuple[SafetyBox, ...]) -> RazerSettings:
@@ -222,6 +230,9 @@ class FrozenSettings(_Settings):
     """Include a PETS row (w_A = w_E = w_S = 0, no mean propagation)."""
     aleatoric_weights: list[float] = []
     """One RAZER row per w_A (the x axis of Fig. 19a); the other cost settings are those of ``razer``."""
+    aleatoric_states: list[AleatoricStates] = ["particles"]
+    """Where the RAZER rows read Var_A: one set of rows (one per w_A) for each entry, ``particles`` (eq. 22, rows
+    ``razer_wA_<w>``) and ``means`` (rows ``razer_wA_<w>_means``); see ``razer.aleatoric_states``."""
     epistemic_weight: float = Field(0.0, ge=0)
     """w_E of the RAZER rows (the model is no longer trained, so exploring buys nothing)."""
     task_options: dict[str, Any] = {}
@@ -238,6 +249,15 @@ class FrozenSettings(_Settings):
         if len(set(weights)) != len(weights):
             raise ValueError(f"aleatoric weights repeat: {weights}")
         return weights
+
+    @field_validator("aleatoric_states")
+    @classmethod
+    def _states_once(cls, states: list[AleatoricStates]) -> list[AleatoricStates]:
+        if not states:
+            raise ValueError("aleatoric_states needs at least one of particles, means")
+        if len(set(states)) != len(states):
+            raise ValueError(f"aleatoric_states repeat: {states}")
+        return states
 
     @model_validator(mode="after")
     def _has_rows(self) -> FrozenSettings:
@@ -346,11 +366,15 @@ def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
             update=dict(aleatoric_weight=0.0, epistemic_weight=0.0, safety_weight=0.0, mean_propagation="none")
         )
         rows.append(("pets", pets))
-    for weight in settings.frozen.aleatoric_weights:
-        update = dict(aleatoric_weight=weight, epistemic_weight=settings.frozen.epistemic_weight)
-        if settings.razer.mean_propagation == "none":
-            update["mean_propagation"] = "per_member"
-        rows.append((f"razer_wA_{weight:g}", settings.razer.model_copy(update=update)))
+    for states in settings.frozen.aleatoric_states:
+        for weight in settings.frozen.aleatoric_weights:
+            update = dict(
+                aleatoric_weight=weight, epistemic_weight=settings.frozen.epistemic_weight, aleatoric_states=states
+            )
+            if settings.razer.mean_propagation == "none":
+                update["mean_propagation"] = "per_member"
+            suffix = "_means" if states == "means" else ""
+            rows.append((f"razer_wA_{weight:g}{suffix}", settings.razer.model_copy(update=update)))
     return rows
 
 
@@ -649,6 +673,8 @@ class MbrlProgram(Program):
         settings: MbrlSettings = trial.settings
         razer = settings.razer
         cost = "pets" if razer.is_pets() else f"razer_wA{razer.aleatoric_weight:g}_wE{razer.epistemic_weight:g}"
+        if razer.aleatoric_states == "means" and razer.aleatoric_weight:
+            cost += "_Ameans"
         if razer.safety_weight:  # the safety term's runs are not the plain w_A / w_E configuration's
             cost += f"_wS{razer.safety_weight:g}_delta{razer.safety_delta:g}"
         return {"preset": str(settings.model.preset or "file"), "cost": cost}
