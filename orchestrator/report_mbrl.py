@@ -82,7 +82,7 @@ def frozen_points(trials: Iterable[Any]) -> list[FrozenPoint]:
         pets = bool(values.get("pets", (0.0,))[0]) or row == "pets"
         weight = values.get("aleatoric_weight", (0.0,))[0]
         points.append(FrozenPoint(row, pets, float(weight), values))
-    points.sort(key=lambda p: (not p.pets, p.aleatoric_states, p.aleatoric_weight))
+    points.sort(key=lambda p: (not p.pets, p.aleatoric_states == "means", p.aleatoric_weight))
     return points
 
 

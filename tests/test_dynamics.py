@@ -406,6 +406,58 @@ def test_sequence_cost_terms_and_total():
     )
 
 
+@pytest.mark.parametrize("mode", ["per_member", "shared"])
+def test_aleatoric_variance_at_the_mean_states_is_the_members_variance_there(mode):
+    """aleatoric_states="means": Var_A(t+1) is the mean over members of Sigma_k at the propagated mean states
+    (each member's own with per_member), not at the particles; the particles and means themselves are unchanged."""
+    model = tiny_model()
+    start, actions = torch.randn(3), torch.rand(2, 4, 2) * 2 - 1
+    at_means = petsus_propagate(model, start, actions, 10, mode, torch.Generator().manual_seed(0), aleatoric_states="means")
+    at_particles = petsus_propagate(model, start, actions, 10, mode, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(at_means.particles, at_particles.particles, rtol=0, atol=0)
+    torch.testing.assert_close(at_means.means, at_particles.means, rtol=0, atol=0)
+    # Step 1: every particle and mean state is s0, so both readings agree there ...
+    torch.testing.assert_close(at_means.var_aleatoric[:, 0], at_particles.var_aleatoric[:, 0])
+    for t in range(1, 4):
+        states = at_means.means[:, :, t - 1].expand(5, -1, -1)  # (K, N, d): member k at its (or the shared) mean
+        _, logvar = model.predict(torch.cat([states, actions[:, t].expand(5, -1, -1)], dim=-1))
+        torch.testing.assert_close(at_means.var_aleatoric[:, t], logvar.exp().mean(0))
+    # ... and after it they part: the particles have spread away from the mean states.
+    assert (at_means.var_aleatoric[:, 1:] - at_particles.var_aleatoric[:, 1:]).abs().max() > 1e-3
+
+
+def test_aleatoric_variance_at_the_mean_states_needs_mean_propagation():
+    with pytest.raises(ValueError, match="needs mean propagation"):
+        petsus_propagate(tiny_model(), torch.zeros(3), torch.zeros(2, 3, 2), 5, "none", aleatoric_states="means")
+    with pytest.raises(ValidationError, match="needs mean propagation"):
+        RazerSettings(aleatoric_weight=0.5, aleatoric_states="means", mean_propagation="none")
+
+
+def test_aleatoric_penalty_at_the_mean_states_propagates_them_without_an_epistemic_weight():
+    """With w_A only, Var_A read at the means needs the mean states the evaluator otherwise skips; the particles'
+    draws do not depend on them, so the task cost is the same and only c_A changes."""
+    model = tiny_model()
+    actions = np.random.default_rng(2).uniform(-1, 1, (6, 4, 2))
+
+    def evaluate(states):
+        settings = RazerSettings(aleatoric_weight=2.0, aleatoric_states=states)
+        return EnsembleEvaluator(model, lambda s, a, s2: s2[:, 0], settings, particles=5, seed=3)
+
+    at_means, at_particles = evaluate("means"), evaluate("particles")
+    assert at_means.propagate(np.zeros(3), actions).means is not None
+    assert at_particles.propagate(np.zeros(3), actions).means is None
+    at_means.reseed(3)
+    at_particles.reseed(3)
+    (_, means), (_, particles) = at_means.costs(np.zeros(3), actions), at_particles.costs(np.zeros(3), actions)
+    np.testing.assert_array_equal(means["c"], particles["c"])
+    expected = petsus_propagate(
+        model, torch.zeros(3), torch.as_tensor(actions, dtype=torch.float32), 5, "per_member",
+        torch.Generator().manual_seed(3), aleatoric_states="means",
+    ).var_aleatoric.sqrt().sum((1, 2))  # fmt: skip
+    np.testing.assert_allclose(means["c_A"], 2.0 * expected.numpy(), rtol=1e-5)
+    assert np.abs(means["c_A"] - particles["c_A"]).max() > 1e-3
+
+
 def test_without_an_epistemic_weight_no_mean_states_are_propagated_and_the_costs_stay_the_same():
     """RAZER with w_A only: the mean states would feed Var_E alone, so they are not propagated (half the rows per
     member with one particle per member), and every cost is what it is with mean propagation switched off."""

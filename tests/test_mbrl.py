@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 from helpers import cli
+from pydantic import ValidationError
 
 from workers import checkpoint
 from workers.dynamics.ensemble import DynamicsEnsemble
@@ -120,6 +121,26 @@ def test_the_cost_label_names_every_term_of_razers_cost():
     assert label(mean_propagation="none", safety_weight=1.0) == "razer_wA0_wE0_wS1_delta0.05"
     assert label(aleatoric_weight=0.05, safety_weight=1.0, safety_delta=0.1) == "razer_wA0.05_wE0_wS1_delta0.1"
     assert label(aleatoric_weight=0.05) == "razer_wA0.05_wE0"
+    assert label(aleatoric_weight=0.05, aleatoric_states="means") == "razer_wA0.05_wE0_Ameans"
+
+
+def test_frozen_rows_read_the_aleatoric_variance_where_each_set_of_rows_says():
+    settings = MbrlSettings(
+        razer={"epistemic_weight": 0.05},
+        frozen={"episodes": 5, "aleatoric_weights": [0.25, 0.5], "aleatoric_states": ["particles", "means"]},
+    )
+    rows = frozen_rows(settings)
+    assert [name for name, _ in rows] == [
+        "pets", "razer_wA_0.25", "razer_wA_0.5", "razer_wA_0.25_means", "razer_wA_0.5_means"
+    ]  # fmt: skip
+    assert [r.aleatoric_states for _, r in rows] == ["particles"] * 3 + ["means"] * 2
+    assert all(r.settings(()).propagated_means() == "per_member" for _, r in rows[3:])
+    assert rows[1][1].settings(()).propagated_means() == "none"  # w_E 0 and Var_A at the particles: no means
+    for states, problem in (([], "at least one"), (["means", "means"], "repeat")):
+        with pytest.raises(ValidationError, match=problem):
+            MbrlSettings(frozen={"episodes": 5, "aleatoric_weights": [0.25], "aleatoric_states": states})
+    with pytest.raises(ValidationError, match="needs mean_propagation"):
+        MbrlSettings(razer={"aleatoric_states": "means", "mean_propagation": "none"})
 
 
 def test_frozen_rows_are_pets_then_razer_by_weight():
@@ -661,6 +682,32 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
     assert list(pets.get_ydata()) == pytest.approx([0.45, 0.6, 0.8])
     written = report_mbrl.write_files(summary, tmp_path)
     assert [p.name for p in written] == ["frozen_success.png", "failure_rate.png", "coverage.png"]
+
+
+def test_the_success_figure_draws_the_two_readings_of_var_a_as_two_lines():
+    from orchestrator import report_mbrl
+    from orchestrator.report import Group, Summary
+    from orchestrator.statistics import Interval
+
+    values = {}
+    for row, success, weight in (("pets", 0.2, 0.0), ("razer_wA_0.25", 0.3, 0.25), ("razer_wA_0.5", 0.1, 0.5),
+                                 ("razer_wA_0.25_means", 0.9, 0.25), ("razer_wA_0.5_means", 0.8, 0.5)):  # fmt: skip
+        values |= {f"frozen/{row}/success_rate": success, f"frozen/{row}/aleatoric_weight": weight}
+    nothing = Interval(0.0, 0.0, 0.0)
+    group = Group("bridge_maze", "mbrl", {}, None, {}, [Run(values)], 0.0, 0.0, nothing, None, None, None, None)
+    points = report_mbrl.frozen_points(group.trials)
+    assert [(p.row, p.aleatoric_states) for p in points] == [
+        ("pets", "particles"),
+        ("razer_wA_0.25", "particles"),
+        ("razer_wA_0.5", "particles"),
+        ("razer_wA_0.25_means", "means"),
+        ("razer_wA_0.5_means", "means"),
+    ]
+    figure = report_mbrl.success_figure(Summary([group], "frozen_success", "frozen_best_success_rate", "max", 0))
+    lines = [line for line in figure.axes[0].lines if line.get_marker() in ("o", "s")]
+    assert [list(line.get_ydata()) for line in lines] == [[0.3, 0.1], [0.9, 0.8]]
+    legend = [text.get_text() for text in figure.axes[0].get_legend().get_texts()]
+    assert sum("Var_A at mean states" in text for text in legend) == 1
 
 
 # ---------------------------------------------------------------- sweeps
