@@ -412,8 +412,10 @@ def test_aleatoric_variance_at_the_mean_states_is_the_members_variance_there(mod
     (each member's own with per_member), not at the particles; the particles and means themselves are unchanged."""
     model = tiny_model()
     start, actions = torch.randn(3), torch.rand(2, 4, 2) * 2 - 1
-    at_means = petsus_propagate(model, start, actions, 10, mode, torch.Generator().manual_seed(0), aleatoric_states="means")
-    at_particles = petsus_propagate(model, start, actions, 10, mode, torch.Generator().manual_seed(0))
+    def propagate(**reading):
+        return petsus_propagate(model, start, actions, 10, mode, torch.Generator().manual_seed(0), **reading)
+
+    at_means, at_particles = propagate(aleatoric_states="means"), propagate()
     torch.testing.assert_close(at_means.particles, at_particles.particles, rtol=0, atol=0)
     torch.testing.assert_close(at_means.means, at_particles.means, rtol=0, atol=0)
     # Step 1: every particle and mean state is s0, so both readings agree there ...
