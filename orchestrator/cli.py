@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -13,7 +14,6 @@ from pathlib import Path
 from workers import MAX_SEED
 
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
 
 DESCRIPTION = """\
 icemlab runs model-based planning experiments as sweeps: a YAML file in, Ray
@@ -366,6 +366,7 @@ def cmd_run(args) -> int:
     if args.dry_run:
         _print_plan(loaded, args)
         return 0
+    from orchestrator.interrupt import describe
     from orchestrator.progress import ProgressDisplay
     from orchestrator.scheduler import PhysicsChangedError, ResourceError, SweepBusyError, SweepScheduler
     from orchestrator.tracking import KILLED, RUNNING
@@ -406,15 +407,15 @@ def cmd_run(args) -> int:
     except (PhysicsChangedError, SweepBusyError) as error:
         print(f"icemlab: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         if display:
             display.close()
         print(
-            "icemlab: interrupted; running trials were stopped and marked KILLED. "
+            f"icemlab: interrupted ({describe(stop)}); running trials were stopped and marked KILLED. "
             f"Continue with: icemlab run {args.sweep} --resume",
             file=sys.stderr,
         )
-        return EXIT_INTERRUPTED
+        return 128 + int(getattr(stop, "signum", signal.SIGINT))  # the shell's code: 130 for Ctrl-C, 143 for SIGTERM
     except Exception as error:
         if display:
             display.close()

@@ -105,6 +105,8 @@ def _rate_error(point: FrozenPoint, key: str) -> tuple[float, float]:
     sem is the wider."""
     mean, sem, n = point.values[key]
     episodes = point.mean("episodes")
+    if not n:  # no seed has a finite rate: nothing to draw a bar for
+        return 0.0, 0.0
     if not (episodes and episodes >= 1):
         return sem, sem
     pooled = int(round(episodes * n))

@@ -42,7 +42,7 @@ from orchestrator.failures import (
     Failure,
     classify,
 )
-from orchestrator.interrupt import InterruptRequest
+from orchestrator.interrupt import InterruptRequest, describe
 from orchestrator.placement import TrialGroup, bundle_layout, groups_that_fit
 from orchestrator.sweep import LoadedSweep, Trial
 from orchestrator.tracking import (
@@ -381,6 +381,7 @@ class SweepScheduler:
         cause = f"{who} ended without closing the run (killed, out of memory, or its machine lost)"
         detail = "Found RUNNING by `icemlab run --resume`, which continues the trial from its last checkpoint.\n"
         self.tracker.record_sweep_failure(sweep_run.run_id, DRIVER_LOST, cause, detail)
+        planned = {trial.key for trial in self.loaded.trials}
         for run in trial_runs:
             if run.status != RUNNING:
                 continue
@@ -389,6 +390,12 @@ class SweepScheduler:
             recorded = f"failures/attempt_{run.attempts:03d}_"
             if not any(path.startswith(recorded) for path in self.tracker.list_files(run.run_id, "failures")):
                 self.tracker.record_failure(run.run_id, run.attempts, DRIVER_LOST, cause, detail)
+            if run.trial_key not in planned:
+                # The sweep was edited before this resume (a seed dropped, a value changed): no driver will adopt
+                # the run, which would stay RUNNING under a closed sweep. Its checkpoints stay; restoring the
+                # trial to the file resumes it.
+                self.tracker.note(run.run_id, "closed by a resume: this trial is no longer in the sweep file")
+                self.tracker.end_trial(run.run_id, KILLED)
 
     def _refuse_a_busy_resume(self) -> None:
         """A resume while the sweep's driver still runs (on this host) would run its trials twice."""
@@ -479,12 +486,12 @@ class SweepScheduler:
                 skipped = len(self.loaded.trials) - len(states)
                 threads, concurrent = self._layout_to_continue(cpus, states)
                 return self._drive(self._parent_id, states, skipped, threads, concurrent, interrupt)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as stop:
             if self._parent_id is not None:
-                # A Ctrl-C pressed again while the runs are closed would leave them RUNNING half-way: it waits for
-                # the closing (a third one still stops it at once).
+                # A Ctrl-C pressed again (or a SIGTERM sent again) while the runs are closed would leave them RUNNING
+                # half-way: it waits for the closing (a third one still stops it at once).
                 with InterruptRequest():
-                    self._abort(self._parent_id, INTERRUPTED, "interrupted (Ctrl-C)", "")
+                    self._abort(self._parent_id, INTERRUPTED, f"interrupted ({describe(stop)})", "")
             raise
         except Exception as error:
             # The driver itself failed (the tracking store, a round report it could not log, ...): say so in

@@ -466,7 +466,7 @@ class Tracker:
                 self.record_sweep_file(run_id, yaml_text)
         self.client.update_run(run_id, status=RUNNING)
         tags = self.client.get_run(run_id).data.tags
-        for tag in (TAG_ERROR, TAG_ERROR_CLASS):
+        for tag in (TAG_ERROR, TAG_ERROR_CLASS, TAG_INTERRUPTED):  # this session ends with its own
             if tag in tags:
                 self.client.delete_tag(run_id, tag)
         self.client.set_tag(run_id, "icemlab.resumed_with_hash", file_hash)

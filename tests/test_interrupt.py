@@ -1,4 +1,4 @@
-"""Ctrl-C handling of the driver loop (orchestrator/interrupt.py), without Ray."""
+"""Stop signals (Ctrl-C, SIGTERM, SIGHUP) in the driver loop (orchestrator/interrupt.py), without Ray."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from orchestrator.interrupt import InterruptRequest
+from orchestrator.interrupt import STOP_SIGNALS, InterruptRequest, Interrupted, describe
 
 
 def library_call_that_swallows_keyboard_interrupt():
@@ -52,4 +52,38 @@ def test_outside_the_main_thread_signals_are_left_alone():
     thread = threading.Thread(target=enter)
     thread.start()
     thread.join()
-    assert seen == [(before, False)]
+    assert seen == [(before, None)]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_are_stop_requests_like_ctrl_c(signum):
+    """Without this, ray.init's SIGTERM handler calls sys.exit: the SystemExit passes the code that closes the
+    sweep's runs, which would stay RUNNING."""
+    with InterruptRequest() as interrupt:
+        signal.raise_signal(signum)
+        assert interrupt.requested == signum
+        with pytest.raises(Interrupted) as stop:
+            interrupt.raise_if_requested()
+        assert stop.value.signum == signum and describe(stop.value) == signal.Signals(signum).name
+        with pytest.raises(Interrupted):  # sent again: at once
+            signal.raise_signal(signum)
+
+
+def test_ctrl_c_is_described_as_ctrl_c_and_every_previous_handler_is_restored():
+    assert describe(KeyboardInterrupt()) == "Ctrl-C" == describe(Interrupted(signal.SIGINT))
+    before = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    with InterruptRequest():
+        assert all(signal.getsignal(signum) is not before[signum] for signum in STOP_SIGNALS)
+    assert {signum: signal.getsignal(signum) for signum in STOP_SIGNALS} == before
+
+
+def test_a_signal_the_process_ignores_stays_ignored():
+    """nohup ignores SIGHUP: a closed terminal must not stop the sweep it was started to outlive."""
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with InterruptRequest() as interrupt:
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            signal.raise_signal(signal.SIGHUP)
+            assert interrupt.requested is None
+    finally:
+        signal.signal(signal.SIGHUP, previous)

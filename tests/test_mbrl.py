@@ -143,6 +143,22 @@ def test_frozen_rows_read_the_aleatoric_variance_where_each_set_of_rows_says():
         MbrlSettings(razer={"aleatoric_states": "means", "mean_propagation": "none"})
 
 
+def test_the_best_frozen_row_is_picked_within_each_reading_of_var_a():
+    from workers.methods.mbrl import best_frozen_success
+
+    frozen = {"episodes": 5, "aleatoric_weights": [0.25, 0.5]}
+    both = frozen_rows(MbrlSettings(frozen=frozen | {"aleatoric_states": ["particles", "means"]}))
+    rates = {"pets": 0.9, "razer_wA_0.25": 0.2, "razer_wA_0.5": 0.4, "razer_wA_0.25_means": 0.8,
+             "razer_wA_0.5_means": 0.6}  # fmt: skip
+    results = {row: {"success_rate": rate} for row, rate in rates.items()}
+    assert best_frozen_success(results, both) == {
+        "frozen_best_success_rate": 0.4, "frozen_best_success_rate_means": 0.8
+    }  # fmt: skip
+    means_only = frozen_rows(MbrlSettings(frozen=frozen | {"aleatoric_states": ["means"]}))
+    assert best_frozen_success(results, means_only) == {"frozen_best_success_rate": 0.8}
+    assert best_frozen_success({"pets": {"success_rate": 0.9}}, both) == {}
+
+
 def test_frozen_rows_are_pets_then_razer_by_weight():
     settings = MbrlSettings(
         razer={"epistemic_weight": 0.05, "safety_weight": 0.0}, frozen={"episodes": 5, "aleatoric_weights": [0.1, 1.0]}
@@ -966,3 +982,12 @@ def test_noisy_halfcheetah_reduced_run_logs_return_and_violation_curves():
         assert metrics["steps"] == 30 and metrics["cost/c_A"] > 0
     assert "coverage" not in iterations[0]  # no coverage grid for this task
     assert reports[-1].summary["final_return"] == pytest.approx(np.mean([m["episode_return"] for m in iterations]))
+
+
+def test_a_row_without_a_finite_rate_in_any_seed_draws_no_bar_and_breaks_no_report():
+    from orchestrator import report_mbrl
+
+    (point,) = report_mbrl.frozen_points([Run({"frozen/razer_wA_1/success_rate": math.nan,
+                                               "frozen/razer_wA_1/episodes": 25.0})])  # fmt: skip
+    assert point.values["success_rate"][2] == 0
+    assert report_mbrl._rate_error(point, "success_rate") == (0.0, 0.0)

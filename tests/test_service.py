@@ -632,6 +632,36 @@ def test_a_lost_drivers_attempt_is_recorded_once_and_an_ended_attempt_not_again(
     assert len(tracker.list_files(parent, "failures")) == 2
 
 
+def test_a_resume_closes_the_runs_a_lost_driver_left_of_trials_no_longer_in_the_sweep(tmp_path):
+    """The sweep was edited between the lost driver and the resume: no state adopts the run of a trial the file no
+    longer has, so the resume closes it (with the lost attempt recorded) rather than leave it RUNNING under a
+    sweep that will finish; a trial still in the file stays RUNNING for the resume to adopt."""
+    sweep = toy_sweep(tmp_path, "edited")
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("edited", "edited", "hash", sweep.read_text(), {}, "dev")
+    dropped = tracker.start_trial(parent, "0123456789abcdef", "dropped", {"seed": 7}, {})
+    kept = tracker.start_trial(parent, load_sweep(sweep).trials[0].key, "kept", {"seed": 0}, {})
+    scheduler = SweepScheduler(load_sweep(sweep), tracker, resume=True)
+    scheduler._record_a_lost_driver(tracker.find_sweep_run("edited", "edited"), tracker.trial_runs(parent))
+    assert tracker.trial_run(dropped).status == KILLED
+    assert tracker.list_files(dropped, "failures") == ["failures/attempt_001_driver_lost.txt"]
+    assert any("no longer in the sweep" in tracker.download(dropped, path, tmp_path / "note").read_text()
+               for path in tracker.list_files(dropped, "notes"))  # fmt: skip
+    assert tracker.trial_run(kept).status == RUNNING
+
+
+def test_a_resumed_sweep_that_finishes_is_no_longer_marked_interrupted(tmp_path):
+    from orchestrator.tracking import TAG_INTERRUPTED
+
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("again", "again", "hash", "name: again\n", {}, "dev")
+    tracker.end_sweep(parent, KILLED, {}, interrupted=True)
+    assert tracker.client.get_run(parent).data.tags[TAG_INTERRUPTED] == "true"
+    tracker.reopen_sweep(parent, "hash", 1)
+    tracker.end_sweep(parent, FINISHED, {})
+    assert TAG_INTERRUPTED not in tracker.client.get_run(parent).data.tags
+
+
 def test_an_abort_passes_over_a_trial_whose_run_was_never_created(tmp_path):
     """The store failed inside start_trial: the trial is launched here but has no run to close."""
     from orchestrator.scheduler import TrialState
@@ -1411,7 +1441,14 @@ def test_a_trial_larger_than_the_cluster_is_refused_before_anything_runs(tmp_pat
     assert tracker.find_sweep_run("too_big", "too_big") is None
 
 
-def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
+@pytest.mark.parametrize(
+    "stop, code",
+    [
+        ("ctrl_c", 130),  # SIGINT to the process group: what a terminal sends on Ctrl-C
+        ("sigterm", 143),  # SIGTERM to the driver alone: kill, ray job stop, a pod's eviction
+    ],
+)
+def test_ctrl_c_or_sigterm_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path, stop, code):
     sweep = write_sweep(
         tmp_path, "interrupt", seeds=[0, 1, 2], base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 200}
     )
@@ -1428,16 +1465,21 @@ def test_ctrl_c_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path):
         assert second.returncode == 2 and f"still being run by the driver with pid {driver.pid}" in second.stderr
         assert "kill -INT" in second.stderr and sweep_runs(uri, "interrupt")[0].status == RUNNING
         time.sleep(1.0)
-        os.killpg(driver.pid, signal.SIGINT)  # what a terminal sends on Ctrl-C
+        if stop == "ctrl_c":
+            os.killpg(driver.pid, signal.SIGINT)
+        else:
+            os.kill(driver.pid, signal.SIGTERM)
         output, _ = driver.communicate(timeout=120)
     finally:
         kill_group(driver)
-    assert driver.returncode == 130, output
-    assert "--resume" in output  # tells the user how to continue
+    assert driver.returncode == code, output
+    said = "Ctrl-C" if stop == "ctrl_c" else "SIGTERM"
+    assert f"interrupted ({said})" in output and "--resume" in output  # tells the user how to continue
     parent, children = sweep_runs(uri, "interrupt")
     assert parent.status == KILLED
     assert children and not [c for c in children if c.status == RUNNING]
-    assert any(c.status == KILLED for c in children)
+    killed = [c for c in children if c.status == KILLED]
+    assert killed and {c.error for c in killed} == {f"interrupted ({said})"}
 
 
 def test_each_driver_error_of_a_sweep_is_kept_and_notes_of_one_millisecond_are_too(tmp_path, monkeypatch):

@@ -378,6 +378,27 @@ def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
     return rows
 
 
+def best_frozen_success(
+    results: dict[str, dict[str, float]], rows: list[tuple[str, RazerCostSettings]]
+) -> dict[str, float]:
+    """The best RAZER row's success rate per reading of Var_A (``frozen_best_success_rate``, the sweep metric:
+    eq. 22's reading where the trial ran it, else the mean states'; ``frozen_best_success_rate_means`` beside it
+    when both ran). One maximum over both readings would mix two configurations, and over more rows it reads
+    higher by chance alone."""
+    reading = {name: cost.aleatoric_states for name, cost in rows}
+    best: dict[str, float] = {}
+    for name, result in results.items():
+        if "success_rate" in result and name in reading and name != "pets":
+            states = reading[name]
+            best[states] = max(best.get(states, -math.inf), result["success_rate"])
+    summary = {}
+    if best:
+        summary["frozen_best_success_rate"] = best.get("particles", best.get("means"))
+    if "means" in best and "particles" in best:
+        summary["frozen_best_success_rate_means"] = best["means"]
+    return summary
+
+
 def _task_map(task: Any, title: str) -> tuple[Any, Any]:
     """(figure, axis) with the task's map drawn in its plane: walkable rectangles, then walls and rims."""
     import matplotlib.pyplot as plt
@@ -976,16 +997,11 @@ class MbrlProgram(Program):
         grid = self._coverage_grid()
         if grid is not None:
             summary["final_coverage"] = float(np.mean(grid))
-        best = None
         for name, result in self.frozen_results.items():
             for key, value in result.items():
                 if not key.startswith("cost/"):
                     summary[f"frozen/{name}/{key}"] = value
-            if "success_rate" in result and name != "pets":
-                best = max(best if best is not None else -math.inf, result["success_rate"])
-        if best is not None:
-            summary["frozen_best_success_rate"] = best
-        return summary
+        return summary | best_frozen_success(self.frozen_results, self.rows)
 
     # ----------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
