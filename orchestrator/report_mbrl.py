@@ -233,8 +233,8 @@ def drop_rate_figure(summary: Any, option: str | None = None):
     axis.set_xlabel(option.removeprefix("task_options."))
     axis.set_ylabel(key_used.replace("_", " "))
     axis.set_ylim(-0.02, 1.02)
-    return _finished(figure, axis, "frozen rows: failure rate against the noise, +- sem over seeds, at least "
-                     "Wilson 95% over their episodes (thesis Fig. 19b: RAZER < 0.2)")  # fmt: skip
+    return _finished(figure, axis, f"frozen rows: failure rate against {option.removeprefix('task_options.')}, "
+                     "+- sem over seeds, at least Wilson 95% over their episodes (thesis Fig. 19b: RAZER < 0.2)")
 
 
 def coverage_figure(summary: Any):

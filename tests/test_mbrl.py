@@ -693,6 +693,7 @@ def test_report_plots_success_against_the_aleatoric_weight_and_failure_against_n
     failures = report_mbrl.drop_rate_figure(summary)
     labels = sorted(text.get_text() for text in failures.axes[0].get_legend().get_texts())
     assert labels == ["pets", "razer_wA_0.1", "razer_wA_1"]
+    assert "against wind_max" in failures.axes[0].get_title()  # the option the rows are placed by, named
     pets = next(bars.lines[0] for bars in failures.axes[0].containers if bars.get_label() == "pets")
     assert list(pets.get_xdata()) == [10, 20, 30]
     assert list(pets.get_ydata()) == pytest.approx([0.45, 0.6, 0.8])

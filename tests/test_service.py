@@ -1500,3 +1500,16 @@ def test_each_driver_error_of_a_sweep_is_kept_and_notes_of_one_millisecond_are_t
     tracker.note(parent, "one")
     tracker.note(parent, "two")
     assert len(tracker.list_files(parent, "notes")) == 2
+
+
+def test_a_step_logged_twice_reads_as_its_latest_value(tmp_path):
+    """A round re-run after a crash may log a step again: the curves and per-episode tests take the latest."""
+    from mlflow.entities import Metric
+
+    tracker = Tracker(default_tracking_uri(tmp_path))
+    parent = tracker.start_sweep("twice", "twice", "hash", "name: twice\n", {}, "dev")
+    run = tracker.start_trial(parent, "key", "trial", {"seed": 0}, {})
+    for timestamp, step, value in ((1000, 0, 1.0), (2000, 1, 5.0), (3000, 1, 3.0)):
+        tracker.client.log_batch(run, metrics=[Metric("episode_return", value, timestamp, step)])
+    (history,) = tracker.histories([run], ["episode_return"])[run].values()
+    assert dict(history) == {0: 1.0, 1: 3.0} and [step for step, _ in history] == [0, 1, 1]
