@@ -13,7 +13,10 @@ SIGTERM (``kill``, ``ray job stop``, a pod's eviction, ``timeout``) and SIGHUP
 (the terminal closed) take the same path. Without it, ``ray.init``'s own SIGTERM
 handler calls ``sys.exit``, whose SystemExit passes every handler that closes
 the runs: the sweep and its trials would stay RUNNING with no cause recorded.
-A signal the process was told to ignore (``nohup`` ignores SIGHUP) stays ignored.
+A SIGHUP the process was told to ignore (``nohup``) stays ignored. SIGINT is
+handled even where it was ignored: a shell without job control starts
+background commands with SIGINT ignored, and ``kill -INT`` is still how such a
+driver is stopped cleanly.
 """
 
 from __future__ import annotations
@@ -60,8 +63,8 @@ class InterruptRequest:
     def __enter__(self) -> InterruptRequest:
         if threading.current_thread() is threading.main_thread():
             for signum in STOP_SIGNALS:
-                if signal.getsignal(signum) is signal.SIG_IGN:
-                    continue
+                if signum == signal.SIGHUP and signal.getsignal(signum) is signal.SIG_IGN:
+                    continue  # nohup: the driver was started to outlive its terminal
                 self._previous[signum] = signal.signal(signum, self._handle)
         return self
 

@@ -87,3 +87,16 @@ def test_a_signal_the_process_ignores_stays_ignored():
             assert interrupt.requested is None
     finally:
         signal.signal(signal.SIGHUP, previous)
+
+
+def test_ctrl_c_is_handled_even_where_the_shell_ignored_it():
+    """A shell without job control starts background commands with SIGINT ignored; ``kill -INT`` must still stop
+    such a driver cleanly."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with InterruptRequest() as interrupt:
+            signal.raise_signal(signal.SIGINT)
+            assert interrupt.requested == signal.SIGINT
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
