@@ -350,19 +350,21 @@ class Tracker:
         if problem:
             raise StoreUnavailable(f"cannot use the MLflow store {self.uri}: {problem}")
         try:
-            self.client = MlflowClient(tracking_uri=self.uri)
             database = sqlite_path(self.uri)
-            if database is not None:
-                self._create_sqlite_store(database)
+            self.client = (
+                MlflowClient(tracking_uri=self.uri) if database is None else self._open_sqlite_store(self.uri, database)
+            )
         except Exception as error:  # noqa: BLE001 - MLflow's and its database drivers' errors alike
             reason = next((line for line in str(error).splitlines() if line.strip()), type(error).__name__)
             raise StoreUnavailable(f"cannot use the MLflow store {self.uri}: {reason[:300]}") from error
 
-    def _create_sqlite_store(self, database: Path) -> None:
-        """Create (or migrate) the embedded store under a file lock.
+    @staticmethod
+    def _open_sqlite_store(uri: str, database: Path) -> MlflowClient:
+        """A client of the embedded store, which it creates (or migrates) under a file lock.
 
-        MLflow creates its tables on first use; two processes doing that at once (``icemlab status``
-        while ``icemlab run`` starts on a fresh store) make one of them fail with "table already exists".
+        MLflow creates its tables when the client is constructed and on first use; two processes doing that at
+        once (``icemlab status`` while ``icemlab run`` starts on a fresh store, a test polling a driver's store)
+        make one of them fail with "table ... already exists".
         """
         import fcntl
 
@@ -370,9 +372,11 @@ class Tracker:
         with open(database.with_name(database.name + ".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             try:
-                self.client.search_experiments(max_results=1)
+                client = MlflowClient(tracking_uri=uri)
+                client.search_experiments(max_results=1)
             finally:
                 fcntl.flock(lock, fcntl.LOCK_UN)
+        return client
 
     # ------------------------------------------------------------ sweeps
     def experiment_id(self, name: str, create: bool = True) -> str | None:

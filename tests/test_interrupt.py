@@ -10,6 +10,18 @@ import pytest
 from orchestrator.interrupt import STOP_SIGNALS, InterruptRequest, Interrupted, describe
 
 
+@pytest.fixture(autouse=True)
+def default_dispositions():
+    """Each test starts from Python's defaults, whatever the test run inherited (nohup ignores SIGHUP; a shell
+    without job control starts background commands with SIGINT ignored)."""
+    defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    defaults[signal.SIGHUP] = signal.SIG_DFL
+    inherited = {signum: signal.signal(signum, handler) for signum, handler in defaults.items()}
+    yield
+    for signum, handler in inherited.items():
+        signal.signal(signum, handler)
+
+
 def library_call_that_swallows_keyboard_interrupt():
     """What Ray's core worker does when Ctrl-C lands in a wait that then returns normally."""
     try:

@@ -1513,3 +1513,27 @@ def test_a_step_logged_twice_reads_as_its_latest_value(tmp_path):
         tracker.client.log_batch(run, metrics=[Metric("episode_return", value, timestamp, step)])
     (history,) = tracker.histories([run], ["episode_return"])[run].values()
     assert dict(history) == {0: 1.0, 1: 3.0} and [step for step, _ in history] == [0, 1, 1]
+
+
+def test_the_embedded_store_is_created_under_its_lock(tmp_path, monkeypatch):
+    """MLflow creates its tables as soon as a client is constructed: two processes opening a fresh store at once
+    (a test or `icemlab status` polling a starting driver) made one fail with "table ... already exists"."""
+    import fcntl
+
+    import orchestrator.tracking as tracking
+
+    constructed = []
+
+    class Client(tracking.MlflowClient):
+        def __init__(self, *args, **kwargs):
+            with open(tmp_path / "mlflow.db.lock", "w") as probe:
+                try:
+                    fcntl.flock(probe, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    constructed.append("unlocked")
+                except BlockingIOError:
+                    constructed.append("locked")
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(tracking, "MlflowClient", Client)
+    Tracker(default_tracking_uri(tmp_path))
+    assert constructed == ["locked"]
