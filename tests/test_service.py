@@ -1450,7 +1450,7 @@ def test_a_trial_larger_than_the_cluster_is_refused_before_anything_runs(tmp_pat
 )
 def test_ctrl_c_or_sigterm_stops_cleanly_and_marks_unfinished_runs_killed(tmp_path, stop, code):
     sweep = write_sweep(
-        tmp_path, "interrupt", seeds=[0, 1, 2], base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 200}
+        tmp_path, "interrupt", seeds=[0, 1, 2], base={"planner": {"budget": 300, "horizon": 30}, "max_steps": 600}
     )
     uri = default_tracking_uri(tmp_path)
     driver = start_cli("run", str(sweep), "--max-concurrent", "1", cwd=tmp_path)
@@ -1464,6 +1464,9 @@ def test_ctrl_c_or_sigterm_stops_cleanly_and_marks_unfinished_runs_killed(tmp_pa
         second = cli("run", str(sweep), "--resume", cwd=tmp_path)  # a second driver would run the trials twice
         assert second.returncode == 2 and f"still being run by the driver with pid {driver.pid}" in second.stderr
         assert "kill -INT" in second.stderr and sweep_runs(uri, "interrupt")[0].status == RUNNING
+        # The second driver took seconds: the signal must land while a trial runs, not between two trials.
+        wait_for(lambda: any(c.status == RUNNING for c in sweep_runs(uri, "interrupt")[1]), timeout=60,
+                 what="a running trial")  # fmt: skip
         time.sleep(1.0)
         if stop == "ctrl_c":
             os.killpg(driver.pid, signal.SIGINT)
