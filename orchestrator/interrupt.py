@@ -36,11 +36,6 @@ class Interrupted(KeyboardInterrupt):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
 
-    @property
-    def reason(self) -> str:
-        """What stopped the driver, as a user would name it."""
-        return describe(self)
-
 
 def describe(stop: KeyboardInterrupt) -> str:
     """``Ctrl-C`` for SIGINT (or a KeyboardInterrupt raised by Python itself), else the signal's name."""

@@ -32,13 +32,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from orchestrator import statistics  # noqa: E402
+from workers.methods.mbrl import MEANS_ROW_SUFFIX  # noqa: E402
 
 FAILURE_KEYS = ("box_drops_rate", "falls_rate")
 """Failure rates of frozen rows, in order of preference (Noisy-FetchPickAndPlace drops boxes, BridgeMaze falls)."""
-
-
-MEANS_SUFFIX = "_means"
-"""The row-name suffix of RAZER rows that read Var_A at the mean states (workers/methods/mbrl.py: frozen_rows)."""
 
 
 class FrozenPoint(NamedTuple):
@@ -54,7 +51,7 @@ class FrozenPoint(NamedTuple):
     @property
     def aleatoric_states(self) -> str:
         """Where the row read Var_A: ``means`` for the ``_means`` rows, else ``particles`` (eq. 22)."""
-        return "means" if self.row.endswith(MEANS_SUFFIX) else "particles"
+        return "means" if self.row.endswith(MEANS_ROW_SUFFIX) else "particles"
 
     def mean(self, key: str) -> float | None:
         return self.values[key][0] if key in self.values else None

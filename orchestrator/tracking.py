@@ -738,18 +738,15 @@ class Tracker:
         self.client.set_terminated(run_id, status=status)
 
     def metric_history(self, run_id: str, key: str) -> list[tuple[int, float]]:
-        return [(m.step, m.value) for m in self.client.get_metric_history(run_id, key)]
-
-    def histories(self, run_ids: Iterable[str], keys: Iterable[str]) -> dict[str, dict[str, list[tuple[int, float]]]]:
-        """Metric histories of several runs, for curve plots."""
-        keys = list(keys)
-        return {run_id: {key: self._in_step_order(run_id, key) for key in keys} for run_id in run_ids}
-
-    def _in_step_order(self, run_id: str, key: str) -> list[tuple[int, float]]:
         """(step, value) by step; a step logged twice (a round re-run after a crash) keeps its entries in the order
         they were logged, so that a dict of the pairs holds the latest."""
         entries = sorted(self.client.get_metric_history(run_id, key), key=lambda m: (m.step, m.timestamp))
         return [(m.step, m.value) for m in entries]
+
+    def histories(self, run_ids: Iterable[str], keys: Iterable[str]) -> dict[str, dict[str, list[tuple[int, float]]]]:
+        """Metric histories of several runs, for curve plots."""
+        keys = list(keys)
+        return {run_id: {key: self.metric_history(run_id, key) for key in keys} for run_id in run_ids}
 
     def list_files(self, run_id: str, path: str | None = None) -> list[str]:
         """Artifact paths of a run (one level)."""

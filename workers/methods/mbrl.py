@@ -358,6 +358,10 @@ def frozen_task(settings: MbrlSettings, task_name: str):
         raise located_error(("frozen", "task_options", *item["loc"]), message, item.get("input")) from None
 
 
+MEANS_ROW_SUFFIX = "_means"
+"""The name suffix of frozen RAZER rows that read Var_A at the mean states (``razer_wA_<w>_means``)."""
+
+
 def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
     """(name, cost settings) of the frozen-evaluation rows: PETS first, then RAZER by w_A."""
     rows = []
@@ -373,7 +377,7 @@ def frozen_rows(settings: MbrlSettings) -> list[tuple[str, RazerCostSettings]]:
             )
             if settings.razer.mean_propagation == "none":
                 update["mean_propagation"] = "per_member"
-            suffix = "_means" if states == "means" else ""
+            suffix = MEANS_ROW_SUFFIX if states == "means" else ""
             rows.append((f"razer_wA_{weight:g}{suffix}", settings.razer.model_copy(update=update)))
     return rows
 
