@@ -357,9 +357,37 @@ def test_random_episodes_draw_their_noise_as_the_planner_release(release):
 def test_each_frozen_row_draws_where_its_episodes_went(tiny_run):
     _, _, reports = tiny_run
     pets, razer = reports[3:]
-    assert [a.path for a in pets.artifacts] == ["plots/frozen_pets.png"]
-    assert [a.path for a in razer.artifacts] == ["plots/frozen_razer_wA_0.5.png"]
-    assert all(a.data.startswith(b"\x89PNG") for a in pets.artifacts + razer.artifacts)
+    assert [a.path for a in pets.artifacts] == ["frozen/pets_episodes.csv", "plots/frozen_pets.png"]
+    assert [a.path for a in razer.artifacts] == [
+        "frozen/razer_wA_0.5_episodes.csv",
+        "plots/frozen_razer_wA_0.5.png",
+    ]
+    assert all(a.data.startswith(b"\x89PNG") for a in pets.artifacts[1:] + razer.artifacts[1:])
+
+
+def test_each_frozen_row_lists_its_episodes_so_that_rows_pair_by_seed(tiny_run):
+    """The per-episode file of every row: the same seeds in the same order, and each line's ending and metrics
+    are those of its episode (the row's logged rates are their means)."""
+    import csv
+    import io
+
+    _, _, reports = tiny_run
+    tables = []
+    for report in reports[3:]:
+        rows = list(csv.DictReader(io.StringIO(report.artifacts[0].data.decode())))
+        tables.append(rows)
+        assert [int(r["episode"]) for r in rows] == [0, 1, 2]
+        assert np.mean([float(r["success"]) for r in rows]) == report.metrics["frozen/success_rate"]
+        assert np.mean([float(r["falls"]) for r in rows]) == report.metrics["frozen/falls_rate"]
+        assert np.mean([float(r["return"]) for r in rows]) == pytest.approx(report.metrics["frozen/mean_return"])
+        endings = [episode_ending({k: float(r[k]) for k in ("success", "falls")}) for r in rows]
+        assert [r["ending"] for r in rows] == endings
+        assert all(math.isfinite(float(r["final_x"])) and math.isfinite(float(r["final_y"])) for r in rows)
+    from workers.methods.mbrl import FROZEN, derived_seed
+
+    trial = tiny_run[0]
+    for rows in tables:  # the seeds the episodes were played with, so that rows and trials pair by them
+        assert [int(r["seed"]) for r in rows] == [derived_seed(trial.seed, FROZEN, e) for e in range(3)]
 
 
 @pytest.mark.parametrize(

@@ -28,7 +28,8 @@ fanned-out episodes (random and frozen ones).
 Artifacts: ``models/model_vNNN.npz`` (weights and normaliser, every
 ``model_every`` iterations and after the last training round) loads with
 ``DynamicsEnsemble.load("model_v012.npz")`` (``from workers.dynamics import
-DynamicsEnsemble``; no pickle involved). For tasks with a plane (BridgeMaze):
+DynamicsEnsemble``; no pickle involved). Per frozen row, ``frozen/<row>_episodes.csv``: each episode's seed,
+ending and metrics, for paired comparisons of rows. For tasks with a plane (BridgeMaze):
 ``plots/uncertainty_vNNN.png`` beside each model, its one-step Var_A and Var_E
 over the plane (workers/dynamics/uncertainty_map.py), and
 ``plots/visited_states.png``, Fig. 37b/c.
@@ -490,6 +491,21 @@ def episode_ending(metrics: dict[str, float]) -> str:
     return "fall" if metrics.get("falls", 0.0) > 0 else "neither"
 
 
+def frozen_outcomes_csv(seeds: list[int], outcomes: list, task: Any) -> bytes:
+    """One line per episode of a frozen row: its index, seed, ending and task metrics, and where it ended in
+    the task's plane (if it has one). Every row plays the same seeds, so two rows' files pair episode by
+    episode (a paired test of success, e.g. McNemar's, instead of one of pooled rates)."""
+    keys = sorted({k for o in outcomes for k in o.metrics})
+    ends = [task.visited_xy(o.trajectory.observations) for o in outcomes]
+    plane = bool(outcomes) and all(end is not None for end in ends)
+    lines = [",".join(["episode", "seed", "ending", *keys, *(["final_x", "final_y"] if plane else [])])]
+    for index, (seed, outcome) in enumerate(zip(seeds, outcomes, strict=True)):
+        values = [repr(float(outcome.metrics[k])) if k in outcome.metrics else "" for k in keys]
+        final = [repr(float(v)) for v in ends[index][-1]] if plane else []
+        lines.append(",".join([str(index), str(seed), episode_ending(outcome.metrics), *values, *final]))
+    return ("\n".join(lines) + "\n").encode()
+
+
 def frozen_paths_png(paths: list[np.ndarray], endings: list[str], title: str, task: Any) -> bytes:
     """The paths of a frozen row's episodes in the task's plane, coloured by how each ended (where PETS and
     RAZER go, section 5.4.2), with the start marked and the count of each ending in the legend."""
@@ -884,7 +900,9 @@ class MbrlProgram(Program):
         result |= {k: v for k, v in episode.items() if k.startswith("cost/")}
         self.frozen_results[name] = result
         metrics = {f"frozen/{k}": v for k, v in result.items()}
-        return metrics, self._frozen_paths(name, outcomes)
+        seeds = [job.seed for job in jobs]
+        outcomes_csv = Artifact(f"frozen/{name}_episodes.csv", frozen_outcomes_csv(seeds, outcomes, self.frozen_task))
+        return metrics, [outcomes_csv, *self._frozen_paths(name, outcomes)]
 
     # ----------------------------------------------------- records
     def _job(self, seed: int, razer, label: str, task_options: dict[str, Any] | None = None):
