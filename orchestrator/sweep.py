@@ -307,6 +307,7 @@ IDENTITY_NEUTRAL_DEFAULTS: dict[str, Any] = {
     "frozen.task_options": {},
     "aleatoric_states": "particles",
     "frozen.aleatoric_states": ["particles"],
+    "refit_epochs": 0,
 }
 """Settings added after trials had run, at the value that reproduces the earlier behaviour (by field name at
 any depth of a method's settings, or by dotted path where the name alone is ambiguous). They are left out of

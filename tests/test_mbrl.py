@@ -439,6 +439,48 @@ def test_model_artifact_loads_with_the_documented_one_liner(tiny_run, tmp_path):
     assert all(a.data.startswith(b"\x89PNG") for a in reports[2].artifacts[1:])
 
 
+def test_a_refit_trains_the_last_model_more_before_the_frozen_rows_and_they_plan_on_it():
+    """frozen.refit_epochs: one more training round, after the iterations and before the rows, of the given
+    epochs on the whole dataset (nothing held out); its model is logged, and the rows plan with its weights."""
+    frozen = {"episodes": 2, "aleatoric_weights": [0.5], "refit_epochs": 3}
+    trial = tiny_trial(iterations=1, model_every=0, frozen=frozen)
+    assert MbrlProgram.planned_rounds(trial) == 1 + 1 + 1 + 2
+    assert MbrlProgram.round_work(trial, {"planner": 2}) == [0.0, 1.0, 0.0, 1.0, 1.0]
+    program = build(trial, planners=2)
+    reports = run_rounds(program, range(MbrlProgram.planned_rounds(trial)))
+    loop, refit = reports[1], reports[2]
+    assert [r.step for r in reports] == [0, 1, 2, 0, 1]
+    assert loop.metrics["weights_version"] == 2 and refit.metrics["refit/weights_version"] == 3
+    assert "held_out_nll" in loop.metrics and "refit/held_out_nll" not in refit.metrics
+    assert not {k for k in refit.metrics if not k.startswith("refit/") and k != "round_seconds"}
+    train_calls = [args for _, method, args in program.trainer.calls if method == "train"]
+    assert [args[-1] for args in train_calls] == [None, None, 3]  # the refit's epochs, the loop's own otherwise
+    # The same dataset as the last iteration's: 3 epochs against the model's 2 take half as many steps again.
+    assert refit.metrics["refit/gradient_steps"] == 1.5 * loop.metrics["gradient_steps"]
+    # The loop's last model and the refit model are both logged; the visited states once, with the loop's.
+    assert [a.path for a in loop.artifacts] == [
+        "models/model_v002.npz",
+        "plots/uncertainty_v002.png",
+        "plots/visited_states.png",
+    ]
+    assert [a.path for a in refit.artifacts] == ["models/model_v003.npz", "plots/uncertainty_v003.png"]
+    frozen_calls = [args for _, _, args in program.remote.calls if args[1].razer is not None]
+    assert len(frozen_calls) == 2 and {args[0].version for args in frozen_calls} == {3}  # one episode per row
+    program.close()
+
+
+def test_a_refit_needs_frozen_rows_and_data_to_train_on():
+    with pytest.raises(ValidationError, match="refit_epochs"):
+        MbrlSettings.model_validate(TINY | {"frozen": {"episodes": 0, "refit_epochs": 10}})
+    with pytest.raises(ValidationError, match="refit_epochs"):
+        frozen = TINY["frozen"] | {"refit_epochs": 5}
+        MbrlSettings.model_validate(
+            TINY | {"random_episodes": 0, "iterations": 0, "initial_model": "m.npz", "frozen": frozen}
+        )
+    with pytest.raises(ValidationError, match="greater than or equal to 0"):
+        MbrlSettings.model_validate(TINY | {"frozen": TINY["frozen"] | {"refit_epochs": -1}})
+
+
 def test_checkpoint_round_trip_continues_identically():
     """Stop after round 1, restore a fresh program (fresh roles) from the checkpoint bytes, go on: same results."""
     trial = tiny_trial(frozen={"episodes": 2, "aleatoric_weights": [0.5]})

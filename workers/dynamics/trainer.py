@@ -72,7 +72,9 @@ class EnsembleTrainer:
         torch.set_num_threads(max(1, int(cpus)))
         self.model = DynamicsEnsemble(obs_dim, action_dim, EnsembleConfig(**config), seed=seed)
 
-    def train(self, dataset: Transitions, held_out_from: int | None, seed: int) -> TrainReport:
+    def train(
+        self, dataset: Transitions, held_out_from: int | None, seed: int, epochs: int | None = None
+    ) -> TrainReport:
         """Evaluate the newest data before training on it, then train on all of ``dataset``.
 
         Args:
@@ -81,6 +83,7 @@ class EnsembleTrainer:
                 evaluated (held-out NLL and MSE) with the current weights *before* training on them;
                 None, or untrained weights: no held-out figures.
             seed: seeds the minibatch order of this call.
+            epochs: epochs of this call; None: the config's.
         """
         dataset = Transitions(*(np.asarray(part) for part in dataset))
         metrics: dict[str, float] = {}
@@ -88,7 +91,7 @@ class EnsembleTrainer:
             held_out = Transitions(*(part[held_out_from:] for part in dataset))
             nll, mse, _, _ = self.model.evaluate(held_out)
             metrics |= {"held_out_nll": nll, "held_out_mse": mse}
-        stats = self.model.train(dataset, seed=seed)
+        stats = self.model.train(dataset, epochs=epochs, seed=seed)
         metrics |= {
             "train_nll": stats.train_nll,
             "train_mse": stats.train_mse,

@@ -10,6 +10,9 @@ A trial is a program of rounds (workers/methods/base.py):
   with RAZER's costs, section 5.3.5) -> add it to the dataset -> the
   ``trainer`` role (an EnsembleTrainer actor) trains on the whole dataset,
   shared once -> new, versioned weights, shared once with the planning workers.
+* **The refit** (``frozen.refit_epochs`` > 0, step = iterations + 1): the last
+  model trained that many more epochs on the whole dataset before the frozen
+  rows (metrics ``refit/...``).
 * **Frozen rounds** (``frozen.episodes`` > 0, step = row): the final model
   evaluated without training, one round per row (PETS, then RAZER at each
   ``frozen.aleatoric_weights``, for each of ``frozen.aleatoric_states``), its episodes fanned out to every planning
@@ -236,6 +239,13 @@ class FrozenSettings(_Settings):
     ``razer_wA_<w>``) and ``means`` (rows ``razer_wA_<w>_means``); see ``razer.aleatoric_states``."""
     epistemic_weight: float = Field(0.0, ge=0)
     """w_E of the RAZER rows (the model is no longer trained, so exploring buys nothing)."""
+    refit_epochs: int = Field(0, ge=0)
+    """Before the rows, train the loop's last model this many more epochs on the loop's whole dataset (warm
+    start; a training round of its own, logged with ``refit/`` metrics and its model); 0: the rows plan on the
+    loop's last model as it is. Section 5.4.2 says the rows use "the same model that was trained from data
+    collected during a training run with w_E = 0.05": the run's last model, or a model trained on the run's
+    data. Each loop call trains ``model.epochs`` on a growing dataset; the small ensemble's last model still
+    overstates the one-step noise of the calm walled bridge (docs/results/razer.md, BridgeMaze)."""
     task_options: dict[str, Any] = {}
     """Task options that differ in the frozen rows from the training iterations' ``task_options``, e.g.
     ``episode_length: 200``: the loop collects shorter episodes (it pays for every step with planning and
@@ -303,6 +313,11 @@ class MbrlSettings(MethodSettings):
                 "random_episodes is 0 and there is no initial_model: the first model would have nothing to learn "
                 "from; collect random episodes or load a model"
             )
+        if self.frozen.refit_epochs and not (self.frozen.episodes and (self.random_episodes or self.iterations)):
+            raise ValueError(
+                "frozen.refit_epochs trains the last model on the loop's data before the frozen rows: it needs "
+                "frozen.episodes and data to train on (random_episodes or iterations)"
+            )
         return self
 
 
@@ -320,6 +335,11 @@ def prefixed(error: ValidationError, prefix: tuple[Any, ...]) -> ValidationError
         for item in error.errors()
     ]
     return ValidationError.from_exception_data("MbrlSettings", details)
+
+
+def training_rounds(settings: MbrlSettings) -> int:
+    """Round 0, the iterations and, with ``frozen.refit_epochs``, the refit: the rounds that train."""
+    return 1 + settings.iterations + (1 if settings.frozen.refit_epochs else 0)
 
 
 def derived_seed(*parts: int) -> int:
@@ -664,7 +684,8 @@ class MbrlProgram(Program):
 
     @classmethod
     def trains(cls, settings: MbrlSettings) -> bool:
-        """Whether the trial trains at all (else it only evaluates an initial model)."""
+        """Whether the trial trains at all (else it only evaluates an initial model; a refit needs data, so
+        it implies one of these)."""
         return settings.random_episodes > 0 or settings.iterations > 0
 
     @classmethod
@@ -724,7 +745,7 @@ class MbrlProgram(Program):
     def planned_rounds(cls, trial: TrialSpec) -> int:
         settings: MbrlSettings = trial.settings
         rows = len(frozen_rows(settings)) if settings.frozen.episodes else 0
-        return 1 + settings.iterations + rows
+        return training_rounds(settings) + rows
 
     @classmethod
     def round_work(cls, trial: TrialSpec, counts) -> list[float]:
@@ -741,7 +762,8 @@ class MbrlProgram(Program):
             length = frozen_task(settings, trial.task).episode_length / loop
         row = float(math.ceil(settings.frozen.episodes / workers)) * length
         rows = len(frozen_rows(settings)) if settings.frozen.episodes else 0
-        return [0.0] + [1.0] * settings.iterations + [row] * rows
+        refit = [0.0] * (training_rounds(settings) - 1 - settings.iterations)  # trains only, as round 0 does
+        return [0.0] + [1.0] * settings.iterations + refit + [row] * rows
 
     # ----------------------------------------------------------------- run
     def __init__(self, trial: TrialSpec, roles, cpus: int):
@@ -763,7 +785,7 @@ class MbrlProgram(Program):
         self.frozen_results: dict[str, dict[str, float]] = {}
         self.rows = frozen_rows(self.settings) if self.settings.frozen.episodes else []
         self.frozen_task = frozen_task(self.settings, trial.task) if self.settings.frozen.task_options else self.task
-        self.training_rounds = 1 + self.settings.iterations
+        self.training_rounds = training_rounds(self.settings)
 
     # ----------------------------------------------------- episodes
     def _run_episodes(self, weights, jobs: list, label: str) -> list:
@@ -805,13 +827,14 @@ class MbrlProgram(Program):
         transitions = self.buffer.transitions()
         return Transitions(transitions.observations, transitions.actions, transitions.next_observations)
 
-    def _train(self, index: int, newest: int) -> dict[str, float]:
-        """Train on the whole dataset (shared once); rows from ``newest`` on are held out first."""
-        self.set_progress(0.9, f"round {index}: training on {self.buffer.steps} transitions")
+    def _train(self, index: int, newest: int, epochs: int | None = None, label: str | None = None) -> dict[str, float]:
+        """Train on the whole dataset (shared once); rows from ``newest`` on are held out first; ``epochs``
+        overrides the model's epochs for this call."""
+        self.set_progress(0.9, label or f"round {index}: training on {self.buffer.steps} transitions")
         dataset = self.trainer.share(self._dataset())
         seed = derived_seed(self.trial.seed, TRAIN, index)
         started = time.perf_counter()
-        report = self.trainer.submit(0, "train", dataset, newest, seed).result()
+        report = self.trainer.submit(0, "train", dataset, newest, seed, epochs).result()
         self.weights = report.weights
         return report.metrics | {"train_call_seconds": time.perf_counter() - started}
 
@@ -820,8 +843,10 @@ class MbrlProgram(Program):
         started = time.perf_counter()
         if index == 0:
             metrics, artifacts = self._round_zero()
-        elif index < self.training_rounds:
+        elif index <= self.settings.iterations:
             metrics, artifacts = self._iteration(index)
+        elif index < self.training_rounds:
+            metrics, artifacts = self._refit(index)
         else:
             metrics, artifacts = self._frozen_round(index - self.training_rounds)
         seconds = time.perf_counter() - started
@@ -876,6 +901,12 @@ class MbrlProgram(Program):
         metrics |= self._train(index, newest)
         metrics |= self._data_metrics()
         return metrics, self._model_artifacts(index)
+
+    def _refit(self, index: int) -> tuple[dict[str, float], list[Artifact]]:
+        """``frozen.refit_epochs`` more epochs for the last model on the whole dataset, before the frozen rows."""
+        epochs = self.settings.frozen.refit_epochs
+        metrics = self._train(index, self.buffer.steps, epochs, f"refitting the last model for {epochs} epochs")
+        return {f"refit/{k}": v for k, v in metrics.items()}, self._model_artifacts(index)
 
     def _frozen_round(self, row: int) -> tuple[dict[str, float], list[Artifact]]:
         name, cost = self.rows[row]
@@ -953,8 +984,9 @@ class MbrlProgram(Program):
         if self.weights is None or self.trainer is None:
             return []
         last = index + 1 == self.training_rounds
+        loop_end = index == self.settings.iterations  # the loop's last model, also when a refit follows
         every = self.settings.model_every
-        if not (last or (every and index % every == 0 and index > 0)):
+        if not (last or loop_end or (every and index % every == 0 and index > 0)):
             return []
         artifacts = [
             Artifact(f"models/model_v{self.weights.version:03d}.npz", npz_bytes(self.weights.arrays, self.weights.meta))
@@ -962,7 +994,7 @@ class MbrlProgram(Program):
         figure = self._uncertainty_map_png()
         if figure is not None:
             artifacts.append(Artifact(f"plots/uncertainty_v{self.weights.version:03d}.png", figure))
-        if last:
+        if loop_end:
             figure = self._visited_states_png()
             if figure is not None:
                 artifacts.append(Artifact("plots/visited_states.png", figure))
