@@ -390,6 +390,32 @@ def test_each_frozen_row_lists_its_episodes_so_that_rows_pair_by_seed(tiny_run):
         assert [int(r["seed"]) for r in rows] == [derived_seed(trial.seed, FROZEN, e) for e in range(3)]
 
 
+def test_an_episodes_line_holds_its_ending_its_metrics_and_where_it_ended():
+    """Episodes of known outcome: a success, a fall, one that ran out of time, each ending at its own place."""
+    import csv
+    import io
+
+    from workers.data import Trajectory
+    from workers.dynamics.episodes import EpisodeOutcome
+    from workers.methods.mbrl import frozen_outcomes_csv
+
+    def outcome(end_xy, metrics):
+        observations = np.zeros((4, 10))
+        observations[-1, :2] = end_xy
+        return EpisodeOutcome(Trajectory(observations, np.zeros((3, 2)), np.zeros(3)), metrics, 1)
+
+    outcomes = [
+        outcome((12.5, 1.0), {"success": 1.0, "falls": 0.0, "return": 24.5}),
+        outcome((-2.0, 2.5), {"success": 0.0, "falls": 1.0, "return": 8.0}),
+        outcome((-9.0, 4.0), {"success": 0.0, "falls": 0.0}),  # a metric an episode lacks stays empty
+    ]
+    text = frozen_outcomes_csv([11, 22, 33], outcomes, make_task("bridge_maze")).decode()
+    rows = list(csv.DictReader(io.StringIO(text)))
+    assert [(r["seed"], r["ending"]) for r in rows] == [("11", "success"), ("22", "fall"), ("33", "neither")]
+    assert [(float(r["final_x"]), float(r["final_y"])) for r in rows] == [(12.5, 1.0), (-2.0, 2.5), (-9.0, 4.0)]
+    assert [r["return"] for r in rows] == ["24.5", "8.0", ""]
+
+
 @pytest.mark.parametrize(
     "metrics, ending",
     [({"success": 1.0, "falls": 0.0}, "success"), ({"success": 0.0, "falls": 1.0}, "fall"), ({"success": 0.0}, "neither")],
