@@ -762,7 +762,7 @@ class MbrlProgram(Program):
             length = frozen_task(settings, trial.task).episode_length / loop
         row = float(math.ceil(settings.frozen.episodes / workers)) * length
         rows = len(frozen_rows(settings)) if settings.frozen.episodes else 0
-        refit = [0.0] * (training_rounds(settings) - 1 - settings.iterations)  # trains only, as round 0 does
+        refit = [0.0] if settings.frozen.refit_epochs else []  # trains only, as round 0 does
         return [0.0] + [1.0] * settings.iterations + refit + [row] * rows
 
     # ----------------------------------------------------------------- run
